@@ -1,0 +1,7 @@
+"""``python -m fgslam``."""
+
+import sys
+
+from fgslam.cli import main
+
+sys.exit(main())

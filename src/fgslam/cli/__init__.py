@@ -1,0 +1,63 @@
+"""``fgslam`` command line: one entry point, one module per command (``cmd_*.py``, discovered).
+
+Command modules import heavy libraries inside their functions so that ``fgslam --help`` is fast.
+Library errors (each package's exception base) become a one-line message and exit code 2.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import pkgutil
+import sys
+
+from fgslam.cli.app import app, bench_app
+
+__all__ = ["app", "bench_app", "main"]
+
+
+def _register_commands() -> None:
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda i: i.name):
+        if info.name.startswith("cmd_"):
+            importlib.import_module(f"{__name__}.{info.name}")
+
+
+_register_commands()
+
+
+def _error_types() -> tuple[type[BaseException], ...]:
+    from ekf.errors import EkfError
+    from fgslam.errors import FgslamError
+    from reloc.errors import RelocError
+    from sim.errors import SimError
+
+    return (FgslamError, RelocError, EkfError, SimError, FileNotFoundError)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: run the typer app, map library errors to exit code 2."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        result = app(args=argv, standalone_mode=False)
+        if isinstance(result, int):  # click returns typer.Exit's code in non-standalone mode
+            return result
+    except SystemExit as exc:  # typer/click exits for --help and usage errors
+        return int(exc.code or 0)
+    except _error_types() as exc:
+        sys.stderr.write(f"fgslam: error: {exc}\n")
+        return 2
+    except Exception as exc:  # click usage errors in non-standalone mode
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            return exc.exit_code
+        if isinstance(exc, click.exceptions.Abort):
+            sys.stderr.write("fgslam: aborted\n")
+            return 1
+        raise
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,200 @@
+"""Typed measurements shared by the simulator, the bag reader and both back-ends.
+
+Frames and units follow DESIGN.md: ``world`` is the orbital map frame (ENU, metres), ``base_link``
+is x forward, y left, z up. Times are float seconds. Every constructor validates its input and
+raises :class:`~reloc.errors.MeasurementError` naming the field and the problem, so a NaN or a
+wrong shape never reaches a filter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Union
+
+import numpy as np
+
+from reloc.errors import MeasurementError
+
+
+def _finite(name: str, value: np.ndarray | float) -> None:
+    if not np.all(np.isfinite(value)):
+        raise MeasurementError(f"{name} contains NaN or inf: {value!r}")
+
+
+def _array(name: str, value, shape: tuple[int | None, ...]) -> np.ndarray:
+    arr = np.array(value, dtype=float)  # a copy: callers cannot mutate a stored measurement
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise MeasurementError(f"{name} must have shape {shape}, got {arr.shape}")
+    _finite(name, arr)
+    arr.setflags(write=False)
+    return arr
+
+
+def _time(name: str, t: float) -> float:
+    t = float(t)
+    _finite(name, t)
+    return t
+
+
+def _unit_quat(name: str, q) -> np.ndarray:
+    q = _array(name, q, (4,))
+    n = float(np.linalg.norm(q))
+    if abs(n - 1.0) > 1e-3:
+        raise MeasurementError(f"{name} must be a unit quaternion (x, y, z, w), norm is {n:.6f}")
+    q = q / n
+    q.setflags(write=False)
+    return q
+
+
+@dataclass(frozen=True, slots=True)
+class CmdVel:
+    """Commanded body velocity at time ``t``: forward speed (base_link x) and yaw rate (about z)."""
+
+    t: float
+    v_mps: float
+    yaw_rate_radps: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _time("CmdVel.t", self.t))
+        object.__setattr__(self, "v_mps", _time("CmdVel.v_mps", self.v_mps))
+        object.__setattr__(self, "yaw_rate_radps", _time("CmdVel.yaw_rate_radps", self.yaw_rate_radps))
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """IMU output at ``t``.
+
+    ``quat_xyzw``: orientation of base_link in the IMU's gravity-aligned reference frame (roll and
+    pitch observable, yaw integrated from the gyro and so drifting). ``gyro_radps`` (3,) and
+    ``accel_mps2`` (3,) are in base_link (accel is specific force: +9.81 z at rest).
+    """
+
+    t: float
+    quat_xyzw: np.ndarray
+    gyro_radps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    accel_mps2: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 9.81]))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _time("ImuSample.t", self.t))
+        object.__setattr__(self, "quat_xyzw", _unit_quat("ImuSample.quat_xyzw", self.quat_xyzw))
+        object.__setattr__(self, "gyro_radps", _array("ImuSample.gyro_radps", self.gyro_radps, (3,)))
+        object.__setattr__(self, "accel_mps2", _array("ImuSample.accel_mps2", self.accel_mps2, (3,)))
+
+
+@dataclass(frozen=True, slots=True)
+class WheelOdometry:
+    """Wheel odometry at ``t``: measured forward speed and yaw rate in base_link (optional input)."""
+
+    t: float
+    v_mps: float
+    yaw_rate_radps: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _time("WheelOdometry.t", self.t))
+        object.__setattr__(self, "v_mps", _time("WheelOdometry.v_mps", self.v_mps))
+        object.__setattr__(
+            self, "yaw_rate_radps", _time("WheelOdometry.yaw_rate_radps", self.yaw_rate_radps)
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class RockObservations:
+    """One stereo frame of rock detections at ``t`` (possibly empty, N = 0).
+
+    ``xyz_base_m`` (N, 3): rock centres in base_link; ``cov_base_m2`` (N, 3, 3): their covariance
+    in base_link (stereo triangulation: depth variance grows with range squared); ``size_m`` (N,):
+    estimated diameter; ``score`` (N,): detector confidence in [0, 1].
+    """
+
+    t: float
+    xyz_base_m: np.ndarray
+    cov_base_m2: np.ndarray
+    size_m: np.ndarray
+    score: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _time("RockObservations.t", self.t))
+        xyz = _array("RockObservations.xyz_base_m", np.reshape(self.xyz_base_m, (-1, 3)), (None, 3))
+        n = xyz.shape[0]
+        cov = _array("RockObservations.cov_base_m2", np.reshape(self.cov_base_m2, (-1, 3, 3)), (n, 3, 3))
+        size = _array("RockObservations.size_m", np.reshape(self.size_m, (-1,)), (n,))
+        score = _array("RockObservations.score", np.reshape(self.score, (-1,)), (n,))
+        if n and np.any(np.abs(cov - np.swapaxes(cov, 1, 2)) > 1e-9 * (1.0 + np.abs(cov))):
+            raise MeasurementError("RockObservations.cov_base_m2 must be symmetric")
+        if n and np.any(np.linalg.eigvalsh(cov)[:, 0] <= 0.0):
+            raise MeasurementError("RockObservations.cov_base_m2 must be positive definite")
+        if np.any(size <= 0.0):
+            raise MeasurementError("RockObservations.size_m must be positive")
+        for name, value in (("xyz_base_m", xyz), ("cov_base_m2", cov), ("size_m", size), ("score", score)):
+            object.__setattr__(self, name, value)
+
+    def __len__(self) -> int:
+        return int(self.xyz_base_m.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class GroundTruthPose:
+    """True pose of base_link in world at ``t`` (simulator only; always optional downstream)."""
+
+    t: float
+    position_m: np.ndarray
+    quat_xyzw: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _time("GroundTruthPose.t", self.t))
+        object.__setattr__(self, "position_m", _array("GroundTruthPose.position_m", self.position_m, (3,)))
+        object.__setattr__(self, "quat_xyzw", _unit_quat("GroundTruthPose.quat_xyzw", self.quat_xyzw))
+
+
+Measurement = Union[CmdVel, ImuSample, WheelOdometry, RockObservations, GroundTruthPose]
+
+# Order of measurements that share a stamp: motion inputs first, so that a rock frame at t is
+# applied to the state predicted to t.
+KIND_ORDER: dict[type, int] = {
+    CmdVel: 0,
+    WheelOdometry: 1,
+    ImuSample: 2,
+    GroundTruthPose: 3,
+    RockObservations: 4,
+}
+
+
+def sort_key(m: Measurement) -> tuple[float, int]:
+    """Key that orders a stream by time, then by :data:`KIND_ORDER`."""
+    return (m.t, KIND_ORDER[type(m)])
+
+
+@dataclass(frozen=True, slots=True)
+class GlobalFix:
+    """A planar global pose fix of base_link in world, valid at ``t_meas``, delivered at ``t_recv``.
+
+    ``cov_xyyaw`` (3, 3): covariance of (x_m, y_m, yaw_rad). ``n_inliers``/``rmse_m`` describe the
+    constellation match that produced it.
+    """
+
+    t_meas: float
+    t_recv: float
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov_xyyaw: np.ndarray
+    n_inliers: int = 0
+    rmse_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "rmse_m"):
+            object.__setattr__(self, name, _time(f"GlobalFix.{name}", getattr(self, name)))
+        if self.t_recv < self.t_meas:
+            raise MeasurementError(
+                f"GlobalFix.t_recv ({self.t_recv}) is before t_meas ({self.t_meas})"
+            )
+        cov = _array("GlobalFix.cov_xyyaw", self.cov_xyyaw, (3, 3))
+        if np.any(np.abs(cov - cov.T) > 1e-9 * (1.0 + np.abs(cov))) or np.linalg.eigvalsh(cov)[0] <= 0:
+            raise MeasurementError("GlobalFix.cov_xyyaw must be symmetric positive definite")
+        object.__setattr__(self, "cov_xyyaw", cov)
+        object.__setattr__(self, "n_inliers", int(self.n_inliers))
+
+    @property
+    def xyyaw(self) -> np.ndarray:
+        """(3,) array (x_m, y_m, yaw_rad)."""
+        return np.array([self.x_m, self.y_m, self.yaw_rad])

@@ -1,0 +1,98 @@
+"""Turn command-velocity and IMU samples into odometry steps that both back-ends consume.
+
+A step spans two consecutive IMU samples. Its translation comes from the command velocity held
+over the step (zero-order hold of the latest /cmd_vel, or wheel odometry when configured), its
+rotation from the IMU orientation increment, which is far better than the commanded yaw rate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from reloc.errors import MeasurementError
+from reloc.measurements import CmdVel, ImuSample, WheelOdometry
+
+
+@dataclass(frozen=True)
+class OdometryStep:
+    """Motion of base_link between ``t0`` and ``t1``.
+
+    ``v_mps``: forward speed (base_link x) over the step; ``yaw_rate_cmd_radps``: commanded yaw rate;
+    ``R_ref_base0`` / ``R_ref_base1`` (3, 3): IMU orientations at t0 / t1 (gravity-aligned reference,
+    yaw drifting); ``gyro_radps`` (3,): mean body rate; ``dR_base`` = R0.T @ R1 the body-frame
+    rotation increment.
+    """
+
+    t0: float
+    t1: float
+    v_mps: float
+    yaw_rate_cmd_radps: float
+    R_ref_base0: np.ndarray
+    R_ref_base1: np.ndarray
+    gyro_radps: np.ndarray
+
+    @property
+    def dt(self) -> float:
+        return self.t1 - self.t0
+
+    @property
+    def dR_base(self) -> np.ndarray:
+        return self.R_ref_base0.T @ self.R_ref_base1
+
+
+class OdometryAssembler:
+    """Stateful: feed CmdVel / WheelOdometry / ImuSample in time order, get an OdometryStep per IMU sample.
+
+    ``speed_source`` is "cmd" (the reference design) or "wheel" (use /wheel_odom when present).
+    Steps longer than ``max_gap_s`` raise :class:`MeasurementError` (a gap in the IMU stream must
+    be visible, not bridged silently).
+    """
+
+    def __init__(self, speed_source: str = "cmd", max_gap_s: float = 1.0) -> None:
+        if speed_source not in ("cmd", "wheel"):
+            raise MeasurementError(f"speed_source must be 'cmd' or 'wheel', got {speed_source!r}")
+        self.speed_source = speed_source
+        self.max_gap_s = max_gap_s
+        self._v = 0.0
+        self._w = 0.0
+        self._last_imu: ImuSample | None = None
+        self._last_t = -np.inf
+
+    def _check_time(self, t: float, what: str) -> None:
+        if t < self._last_t:
+            raise MeasurementError(f"{what} at t={t:.6f} s is older than the previous input ({self._last_t:.6f} s)")
+        self._last_t = t
+
+    def push(self, m: CmdVel | WheelOdometry | ImuSample) -> OdometryStep | None:
+        """Consume one input; return the step completed by an IMU sample, else None."""
+        self._check_time(m.t, type(m).__name__)
+        if isinstance(m, CmdVel):
+            if self.speed_source == "cmd":
+                self._v, self._w = m.v_mps, m.yaw_rate_radps
+            return None
+        if isinstance(m, WheelOdometry):
+            if self.speed_source == "wheel":
+                self._v, self._w = m.v_mps, m.yaw_rate_radps
+            return None
+        if not isinstance(m, ImuSample):
+            raise MeasurementError(f"OdometryAssembler cannot consume {type(m).__name__}")
+        prev, self._last_imu = self._last_imu, m
+        if prev is None:
+            return None
+        dt = m.t - prev.t
+        if dt <= 0.0:
+            raise MeasurementError(f"duplicate IMU stamp t={m.t:.6f} s")
+        if dt > self.max_gap_s:
+            raise MeasurementError(f"IMU gap of {dt:.3f} s at t={m.t:.3f} s exceeds max_gap_s={self.max_gap_s}")
+        return OdometryStep(
+            t0=prev.t,
+            t1=m.t,
+            v_mps=self._v,
+            yaw_rate_cmd_radps=self._w,
+            R_ref_base0=Rotation.from_quat(prev.quat_xyzw).as_matrix(),
+            R_ref_base1=Rotation.from_quat(m.quat_xyzw).as_matrix(),
+            gyro_radps=0.5 * (np.asarray(prev.gyro_radps) + np.asarray(m.gyro_radps)),
+        )

@@ -1,0 +1,88 @@
+import numpy as np
+import pytest
+from hypothesis import given, strategies as st
+from scipy.spatial.transform import Rotation
+
+from reloc.config import config_from_dict, config_to_dict
+from reloc.errors import ConfigError, MeasurementError
+from reloc.measurements import CmdVel, GlobalFix, ImuSample, RockObservations, sort_key
+from reloc.odometry import OdometryAssembler
+
+
+def test_nan_rejected_with_field_name():
+    with pytest.raises(MeasurementError, match="CmdVel.v_mps"):
+        CmdVel(t=0.0, v_mps=float("nan"), yaw_rate_radps=0.0)
+    with pytest.raises(MeasurementError, match="xyz_base_m"):
+        RockObservations(0.0, [[np.nan, 0, 0]], [np.eye(3)], [0.3], [0.9])
+
+
+def test_rock_observations_shapes_and_empty_frame():
+    empty = RockObservations(1.0, np.zeros((0, 3)), np.zeros((0, 3, 3)), [], [])
+    assert len(empty) == 0
+    with pytest.raises(MeasurementError, match="cov_base_m2"):
+        RockObservations(0.0, [[1, 0, 0]], [np.eye(3), np.eye(3)], [0.3], [0.9])
+    with pytest.raises(MeasurementError, match="positive definite"):
+        RockObservations(0.0, [[1, 0, 0]], [np.zeros((3, 3))], [0.3], [0.9])
+
+
+def test_measurements_are_immutable_copies():
+    xyz = np.array([[1.0, 2.0, 3.0]])
+    obs = RockObservations(0.0, xyz, [np.eye(3)], [0.3], [0.9])
+    xyz[0, 0] = 99.0
+    assert obs.xyz_base_m[0, 0] == 1.0
+    with pytest.raises(ValueError):
+        obs.xyz_base_m[0, 0] = 5.0
+
+
+def test_fix_validation():
+    with pytest.raises(MeasurementError, match="t_recv"):
+        GlobalFix(t_meas=5.0, t_recv=4.0, x_m=0, y_m=0, yaw_rad=0, cov_xyyaw=np.eye(3))
+    with pytest.raises(MeasurementError, match="positive definite"):
+        GlobalFix(t_meas=5.0, t_recv=6.0, x_m=0, y_m=0, yaw_rad=0, cov_xyyaw=np.zeros((3, 3)))
+
+
+def test_sort_key_puts_motion_before_rocks():
+    obs = RockObservations(1.0, np.zeros((0, 3)), np.zeros((0, 3, 3)), [], [])
+    imu = ImuSample(1.0, [0, 0, 0, 1])
+    cmd = CmdVel(1.0, 0.1, 0.0)
+    assert sorted([obs, imu, cmd], key=sort_key) == [cmd, imu, obs]
+
+
+@given(st.floats(-np.pi, np.pi), st.floats(0.0, 0.5), st.floats(-0.3, 0.3))
+def test_odometry_increment_recovers_rotation(yaw0, v, wz):
+    asm = OdometryAssembler()
+    R0 = Rotation.from_euler("zyx", [yaw0, 0.05, -0.02])
+    R1 = R0 * Rotation.from_rotvec([0.0, 0.0, wz / 30.0])
+    asm.push(CmdVel(0.0, v, wz))
+    assert asm.push(ImuSample(0.0, R0.as_quat())) is None
+    step = asm.push(ImuSample(1 / 30, R1.as_quat()))
+    assert step is not None and step.v_mps == v
+    np.testing.assert_allclose(step.dR_base, Rotation.from_rotvec([0, 0, wz / 30.0]).as_matrix(), atol=1e-9)
+
+
+def test_odometry_rejects_out_of_order_and_duplicates():
+    asm = OdometryAssembler()
+    asm.push(ImuSample(1.0, [0, 0, 0, 1]))
+    with pytest.raises(MeasurementError, match="older"):
+        asm.push(CmdVel(0.5, 0.1, 0.0))
+    with pytest.raises(MeasurementError, match="duplicate"):
+        asm.push(ImuSample(1.0, [0, 0, 0, 1]))
+
+
+def test_config_override_and_unknown_key():
+    from dataclasses import dataclass, field
+
+    @dataclass(frozen=True)
+    class Inner:
+        sigma_m: float = 0.1
+
+    @dataclass(frozen=True)
+    class Outer:
+        rate_hz: float = 2.0
+        inner: Inner = field(default_factory=Inner)
+
+    cfg = config_from_dict(Outer, {"rate_hz": 5, "inner": {"sigma_m": 0.2}})
+    assert cfg.rate_hz == 5.0 and cfg.inner.sigma_m == 0.2
+    assert config_to_dict(cfg) == {"rate_hz": 5.0, "inner": {"sigma_m": 0.2}}
+    with pytest.raises(ConfigError, match="bogus"):
+        config_from_dict(Outer, {"bogus": 1})
