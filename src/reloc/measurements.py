@@ -198,3 +198,27 @@ class GlobalFix:
     def xyyaw(self) -> np.ndarray:
         """(3,) array (x_m, y_m, yaw_rad)."""
         return np.array([self.x_m, self.y_m, self.yaw_rad])
+
+
+@dataclass(frozen=True, slots=True)
+class RockCatalog:
+    """A 2D rock catalog in the world frame (orbital detections): ``xy_m`` (N, 2), ``size_m`` (N,)
+    diameters, ``score`` (N,) detector confidences. The CSV form is ``x,y,size,score``."""
+
+    xy_m: np.ndarray
+    size_m: np.ndarray
+    score: np.ndarray
+
+    def __post_init__(self) -> None:
+        xy = _array("RockCatalog.xy_m", np.reshape(self.xy_m, (-1, 2)), (None, 2))
+        n = xy.shape[0]
+        size = _array("RockCatalog.size_m", np.reshape(self.size_m, (-1,)), (n,))
+        score = _array("RockCatalog.score", np.reshape(self.score, (-1,)), (n,))
+        if np.any(size <= 0.0):
+            raise MeasurementError("RockCatalog.size_m must be positive")
+        object.__setattr__(self, "xy_m", xy)
+        object.__setattr__(self, "size_m", size)
+        object.__setattr__(self, "score", score)
+
+    def __len__(self) -> int:
+        return int(self.xy_m.shape[0])
