@@ -1,0 +1,1 @@
+"""Simulated sensors: commanded velocity with wheel slip, IMU, stereo rock detector, orbital catalog."""

@@ -1,0 +1,213 @@
+"""Stereo rock detector on the rover's mast camera.
+
+Per frame: rocks within range whose centre projects into the 2304 x 1296 image are candidates; a
+few rays from the camera to points spread over each candidate (batched over all frames, one
+open3d ``cast_rays`` call per chunk) decide whether it is visible (enough rays hit that rock
+first). A visible rock is detected with a probability that grows with its apparent size in pixels;
+the logistic's offset is solved so the mean probability over all visible rocks equals the
+configured recall. Positions get stereo noise (depth sigma = z^2 * sigma_disp / (f * baseline),
+lateral sigma = z * sigma_px / f), reported with their covariance in base_link. False positives
+(clutter on the terrain) are added so that true / all detections equals the configured precision.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import brentq
+from scipy.spatial import cKDTree
+
+from sim.config import StereoConfig
+from sim.world import World
+
+RAY_CHUNK = 400_000
+
+
+@dataclass(frozen=True)
+class StereoCamera:
+    """Pinhole camera: ``f_px``, principal point, ``T_base_cam`` (4, 4) (optical frame: z forward,
+    x right, y down)."""
+
+    width_px: int
+    height_px: int
+    f_px: float
+    T_base_cam: np.ndarray
+
+    @staticmethod
+    def from_config(cfg: StereoConfig) -> StereoCamera:
+        f = 0.5 * cfg.width_px / np.tan(np.deg2rad(cfg.hfov_deg) / 2)
+        R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical -> base axes
+        th = np.deg2rad(cfg.mount_tilt_deg)
+        Ry = np.array([[np.cos(th), 0, np.sin(th)], [0, 1, 0], [-np.sin(th), 0, np.cos(th)]])
+        T = np.eye(4)
+        T[:3, :3] = Ry @ R0
+        T[:3, 3] = cfg.mount_xyz_m
+        return StereoCamera(cfg.width_px, cfg.height_px, float(f), T)
+
+
+@dataclass(frozen=True)
+class StereoFrames:
+    """Detections per frame (lists of length F): ``xyz_base_m`` (N, 3), ``cov_base_m2`` (N, 3, 3),
+    ``size_m`` (N,), ``score`` (N,), ``rock`` (N,) the true rock row (-1: false positive); and
+    ``visible`` the rock rows visible in each frame."""
+
+    xyz_base_m: list[np.ndarray]
+    cov_base_m2: list[np.ndarray]
+    size_m: list[np.ndarray]
+    score: list[np.ndarray]
+    rock: list[np.ndarray]
+    visible: list[np.ndarray]
+
+    @property
+    def n_visible(self) -> int:
+        return int(sum(len(v) for v in self.visible))
+
+    @property
+    def n_true(self) -> int:
+        return int(sum(int(np.sum(r >= 0)) for r in self.rock))
+
+    @property
+    def n_detections(self) -> int:
+        return int(sum(len(r) for r in self.rock))
+
+
+def visible_rocks(world: World, T_world_base: np.ndarray, cfg: StereoConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Visible (frame, rock) pairs for camera poses from base poses ``T_world_base`` (F, 4, 4):
+    returns ``frame`` (M,) and ``rock`` (M,) index arrays."""
+    cam = StereoCamera.from_config(cfg)
+    rocks = world.rocks
+    F = len(T_world_base)
+    if len(rocks) == 0 or F == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    T_wc = T_world_base @ cam.T_base_cam
+    o = T_wc[:, :3, 3]
+    tree = cKDTree(rocks.xyz_m[:, :2])
+    lists = tree.query_ball_point(o[:, :2], cfg.max_range_m + 0.5)
+    fr = np.repeat(np.arange(F), [len(x) for x in lists])
+    rk = np.fromiter((k for x in lists for k in x), dtype=int, count=len(fr))
+    R = T_wc[fr, :3, :3]
+    pc = np.einsum("mji,mj->mi", R, rocks.xyz_m[rk] - o[fr])
+    z = pc[:, 2]
+    rng_m = np.linalg.norm(pc, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = cam.f_px * pc[:, 0] / z + cam.width_px / 2
+        v = cam.f_px * pc[:, 1] / z + cam.height_px / 2
+    keep = (z > cfg.min_range_m) & (rng_m < cfg.max_range_m) & (u >= 0) & (u < cam.width_px) & (v >= 0) & (v < cam.height_px)
+    fr, rk, R = fr[keep], rk[keep], R[keep]
+    if len(fr) == 0:
+        return fr, rk
+    # sample points: the centre and a ring across the line of sight, inside the rock's outline
+    K = max(int(cfg.rays_per_rock), 1)
+    ang = np.arange(K - 1) * 2 * np.pi / max(K - 1, 1)
+    half_w = 0.45 * rocks.size_m[rk] / 2
+    half_h = 0.45 * rocks.height_m[rk] / 2
+    ex, ey = R[:, :, 0], np.array([0.0, 0.0, -1.0])  # camera right, world down
+    offs = [np.zeros((len(rk), 3))]
+    for a in ang:
+        offs.append(np.cos(a) * half_w[:, None] * ex + np.sin(a) * half_h[:, None] * ey)
+    q = rocks.xyz_m[rk][:, None, :] + np.stack(offs, axis=1)  # (M, K, 3)
+    orig = np.broadcast_to(o[fr][:, None, :], q.shape)
+    d = q - orig
+    dist = np.linalg.norm(d, axis=2)
+    rays = np.concatenate([orig, d / dist[..., None]], axis=2).reshape(-1, 6)
+    scene = world.raycast_scene()
+    hit_ok = np.zeros(len(rays), dtype=bool)
+    target = np.repeat(rk, K)
+    dist = dist.ravel()
+    for s in range(0, len(rays), RAY_CHUNK):
+        t_hit, rock_hit, _ = scene.cast(rays[s:s + RAY_CHUNK])
+        sl = slice(s, s + RAY_CHUNK)
+        hit_ok[sl] = (rock_hit == target[sl]) & (t_hit <= dist[sl] + 0.05)
+    frac = hit_ok.reshape(-1, K).mean(axis=1)
+    vis = frac >= cfg.min_visible_fraction
+    return fr[vis], rk[vis]
+
+
+def detection_probability(apparent_px: np.ndarray, recall: float, log_slope: float) -> np.ndarray:
+    """p (M,) = sigmoid(a + log_slope * log(apparent_px)) with ``a`` solved so mean(p) = ``recall``."""
+    if len(apparent_px) == 0 or recall >= 1.0:
+        return np.ones(len(apparent_px))
+    x = log_slope * np.log(np.maximum(apparent_px, 1e-3))
+
+    def gap(a: float) -> float:
+        return float(np.mean(1.0 / (1.0 + np.exp(-(a + x))))) - recall
+
+    a = brentq(gap, -60.0 - x.max(), 60.0 - x.min(), xtol=1e-6)
+    return 1.0 / (1.0 + np.exp(-(a + x)))
+
+
+def _stereo_cov_cam(pc: np.ndarray, cam: StereoCamera, cfg: StereoConfig) -> np.ndarray:
+    """Camera-frame covariance (M, 3, 3): depth variance along the line of sight, lateral across."""
+    z = np.maximum(pc[:, 2], 0.1)
+    s_r = z**2 * cfg.sigma_disparity_px / (cam.f_px * cfg.baseline_m)
+    s_l = z * cfg.sigma_pixel_px / cam.f_px
+    u = pc / np.linalg.norm(pc, axis=1, keepdims=True)
+    return s_l[:, None, None] ** 2 * np.eye(3) + (s_r**2 - s_l**2)[:, None, None] * np.einsum("mi,mj->mij", u, u)
+
+
+def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, rng: np.random.Generator) -> StereoFrames:
+    """Rock detections for each base pose ``T_world_base`` (F, 4, 4) (one stereo frame each)."""
+    cam = StereoCamera.from_config(cfg)
+    F = len(T_world_base)
+    rocks = world.rocks
+    fr, rk = visible_rocks(world, T_world_base, cfg)
+    T_wc = T_world_base @ cam.T_base_cam
+    pc = np.einsum("mji,mj->mi", T_wc[fr, :3, :3], rocks.xyz_m[rk] - T_wc[fr, :3, 3])
+    p_det = detection_probability(cam.f_px * rocks.size_m[rk] / np.maximum(pc[:, 2], 1e-3), cfg.recall, cfg.detect_log_slope)
+    det = rng.random(len(fr)) < p_det
+    # false positives: clutter points on the terrain in the lower part of the image
+    n_fp = rng.poisson(det.sum() * (1.0 - cfg.precision) / cfg.precision) if cfg.precision < 1 else 0
+    fp_frame, fp_pc = _clutter(world, T_wc, cam, cfg, n_fp, rng)
+    frames = np.concatenate([fr[det], fp_frame])
+    truth = np.concatenate([rk[det], np.full(len(fp_frame), -1)])
+    pts = np.vstack([pc[det], fp_pc])
+    lo, hi = np.log(cfg.fp_size_m[0]), np.log(cfg.fp_size_m[1])
+    size_true = np.concatenate([rocks.size_m[rk[det]], np.exp(rng.uniform(lo, hi, len(fp_frame)))])
+    cov_c = _stereo_cov_cam(pts, cam, cfg) if len(pts) else np.zeros((0, 3, 3))
+    L = np.linalg.cholesky(cov_c) if len(pts) else cov_c
+    meas_c = pts + np.einsum("mij,mj->mi", L, rng.standard_normal(pts.shape)) if len(pts) else pts
+    Rbc, tbc = cam.T_base_cam[:3, :3], cam.T_base_cam[:3, 3]
+    xyz_b = meas_c @ Rbc.T + tbc
+    cov_b = np.einsum("ij,mjk,lk->mil", Rbc, cov_c, Rbc)
+    cov_b = 0.5 * (cov_b + np.swapaxes(cov_b, 1, 2))
+    size = size_true * np.exp(cfg.size_sigma_rel * rng.standard_normal(len(size_true)))
+    score = np.where(truth >= 0, rng.beta(*cfg.score_true, len(truth)), rng.beta(*cfg.score_false, len(truth)))
+    visible = [rk[fr == f] for f in range(F)]
+    order = np.argsort(frames, kind="stable")
+    bounds = np.searchsorted(frames[order], np.arange(F + 1))
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "cov", "size", "score", "rock")}
+    for f in range(F):
+        sel = order[bounds[f]:bounds[f + 1]]
+        out["xyz"].append(xyz_b[sel])
+        out["cov"].append(cov_b[sel])
+        out["size"].append(size[sel])
+        out["score"].append(score[sel])
+        out["rock"].append(truth[sel])
+    return StereoFrames(out["xyz"], out["cov"], out["size"], out["score"], out["rock"], visible)
+
+
+def _clutter(world: World, T_wc: np.ndarray, cam: StereoCamera, cfg: StereoConfig, n: int, rng: np.random.Generator):
+    """``n`` false-positive points: (frame (n,), camera-frame xyz (n, 3)) on visible terrain."""
+    F = len(T_wc)
+    if n == 0 or F == 0:
+        return np.zeros(0, dtype=int), np.zeros((0, 3))
+    frames_out, pts_out = [], []
+    need = n
+    for _ in range(6):
+        m = 3 * need + 16
+        f = rng.integers(0, F, m)
+        u = rng.uniform(0, cam.width_px, m)
+        v = rng.uniform(0.3 * cam.height_px, cam.height_px, m)
+        dc = np.column_stack([(u - cam.width_px / 2) / cam.f_px, (v - cam.height_px / 2) / cam.f_px, np.ones(m)])
+        dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+        dw = np.einsum("mij,mj->mi", T_wc[f, :3, :3], dc)
+        t_hit, rock, _ = world.raycast_scene().cast(np.hstack([T_wc[f, :3, 3], dw]))
+        ok = (rock < 0) & np.isfinite(t_hit) & (t_hit > cfg.min_range_m) & (t_hit < cfg.max_range_m)
+        idx = np.flatnonzero(ok)[:need]
+        frames_out.append(f[idx])
+        pts_out.append(dc[idx] * t_hit[idx, None] + np.array([0.0, -0.05, 0.0]))  # a little above ground
+        need -= len(idx)
+        if need == 0:
+            break
+    return np.concatenate(frames_out), np.vstack(pts_out)

@@ -1,0 +1,140 @@
+"""Worlds: a terrain heightmap plus rocks, the four reference Mars-yard presets, and the open3d
+ray-casting scene (terrain + all rock meshes) that the stereo camera and the orbital view use."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sim.config import WorldGenConfig
+from sim.errors import SimError
+from sim.rocks import Rocks, generate_rocks
+from sim.terrain import Heightmap, fractal_heightmap
+
+
+@dataclass(frozen=True)
+class WorldPreset:
+    """A reference Mars yard: size (m), relief (m), rock count, reference traverse."""
+
+    name: str
+    size_x_m: float
+    size_y_m: float
+    relief_m: float
+    n_rocks: int
+    traverse_m: float
+    duration_s: float
+
+    @property
+    def mean_speed_mps(self) -> float:
+        return self.traverse_m / self.duration_s
+
+
+PRESETS: dict[str, WorldPreset] = {
+    p.name: p
+    for p in (
+        WorldPreset("my2020", 43.32, 36.29, 3.01, 2715, 87.05, 905.6),
+        WorldPreset("my2021", 47.0, 47.0, 6.58, 740, 90.67, 1374.8),
+        WorldPreset("my2022", 50.0, 50.0, 4.82, 294, 85.51, 1046.0),
+        WorldPreset("cnes", 57.0, 83.0, 7.81, 468, 70.66, 496.9),
+    )
+}
+# Traverse defaults for imported worlds, which have no reference run.
+IMPORTED_TRAVERSE_M = 80.0
+IMPORTED_MEAN_SPEED_MPS = 0.08
+
+
+class RaycastScene:
+    """open3d ``RaycastingScene`` over the terrain and the merged rock mesh.
+
+    ``cast(rays)`` with rays (N, 6) = (origin xyz, direction xyz) returns ``t_hit`` (N,) (inf on a
+    miss), ``rock`` (N,) the row of the rock hit first (-1 for terrain or a miss) and
+    ``normal`` (N, 3) the unit normal of the surface hit.
+    """
+
+    def __init__(self, terrain: Heightmap, rocks: Rocks) -> None:
+        from sim.open3d_loader import open3d
+
+        o3d = open3d()
+        self._o3c = o3d.core
+        self.scene = o3d.t.geometry.RaycastingScene()
+        tv, tt = terrain.mesh()
+        self.terrain_geometry = self.scene.add_triangles(
+            o3d.core.Tensor(tv.astype(np.float32)), o3d.core.Tensor(tt.astype(np.uint32))
+        )
+        self.rock_geometry = -1
+        self._triangle_rock = rocks.triangle_rock
+        if len(rocks):
+            self.rock_geometry = self.scene.add_triangles(
+                o3d.core.Tensor(rocks.vertices_m.astype(np.float32)),
+                o3d.core.Tensor(rocks.triangles.astype(np.uint32)),
+            )
+
+    def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cast rays (N, 6) in world metres; see the class doc for the returned arrays."""
+        rays = np.ascontiguousarray(rays, dtype=np.float32).reshape(-1, 6)
+        if len(rays) == 0:
+            return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        ans = self.scene.cast_rays(self._o3c.Tensor(rays))
+        t_hit = ans["t_hit"].numpy().astype(float)
+        geom = ans["geometry_ids"].numpy().astype(np.int64)
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        rock = np.full(len(rays), -1, dtype=np.int64)
+        on_rock = (geom == self.rock_geometry) & np.isfinite(t_hit)
+        rock[on_rock] = self._triangle_rock[prim[on_rock]]
+        return t_hit, rock, ans["primitive_normals"].numpy().astype(float)
+
+
+@dataclass
+class World:
+    """A Mars yard: ``terrain`` heightmap, true ``rocks``, and its ``preset`` timing (None if imported)."""
+
+    name: str
+    terrain: Heightmap
+    rocks: Rocks
+    preset: WorldPreset | None = None
+    source: str = "procedural"
+    _scene: RaycastScene | None = field(default=None, repr=False)
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) in world metres."""
+        return self.terrain.extent
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """Terrain height (N,) under world points ``xy`` (N, 2); rocks not included."""
+        return self.terrain.height_at(xy)
+
+    def normal_at(self, xy: np.ndarray) -> np.ndarray:
+        """Unit terrain normal (N, 3) under world points ``xy`` (N, 2)."""
+        return self.terrain.normal_at(xy)
+
+    def raycast_scene(self) -> RaycastScene:
+        """The (cached) ray-casting scene of terrain + rocks."""
+        if self._scene is None:
+            self._scene = RaycastScene(self.terrain, self.rocks)
+        return self._scene
+
+
+def build_world(name: str, seed: int, cfg: WorldGenConfig | None = None) -> World:
+    """The world named ``name``: a preset (procedural, seeded) or a Gazebo model directory."""
+    cfg = cfg or WorldGenConfig()
+    if name in PRESETS:
+        p = PRESETS[name]
+        rng = np.random.default_rng([seed, 1])
+        extent = (-p.size_x_m / 2, p.size_x_m / 2, -p.size_y_m / 2, p.size_y_m / 2)
+        terrain = fractal_heightmap(extent, p.relief_m, cfg.resolution_m, rng)
+        rocks = generate_rocks(
+            terrain, cfg.n_rocks if cfg.n_rocks is not None else p.n_rocks, rng,
+            d_min=cfg.rock_min_diameter_m, d_max=cfg.rock_max_diameter_m,
+            alpha=cfg.rock_cumulative_exponent, embed_fraction=cfg.rock_embed_fraction,
+            subdivisions=cfg.rock_icosphere_subdivisions,
+        )
+        return World(name=name, terrain=terrain, rocks=rocks, preset=p)
+    path = Path(name)
+    if path.is_dir():
+        from sim.gazebo_import import import_gazebo_world
+
+        return import_gazebo_world(path)
+    raise SimError(f"unknown world {name!r}: use one of {sorted(PRESETS)} or a Gazebo model directory")
