@@ -1,0 +1,80 @@
+"""Configuration of the EKF-SLAM baseline: one frozen dataclass per stage, defaults in code.
+
+Process-noise model (see :mod:`ekf.motion`): per step of ``dt`` seconds the body-frame
+translation and rotation errors are white with variance ``sigma**2 * dt``, where each ``sigma``
+(per square-root second) grows linearly with the speed ``|v|`` (m/s), the turn rate ``|w_z|``
+(rad/s) and the roughness ``rho = sqrt(w_x**2 + w_y**2)`` (rad/s, roll/pitch rate from the IMU).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from reloc.association import AssociationConfig
+from reloc.errors import ConfigError
+from reloc.landmark_book import LandmarkBookConfig
+
+
+@dataclass(frozen=True)
+class MotionNoiseConfig:
+    """Dynamic process noise. Translation sigmas in m/sqrt(s), rotation sigmas in rad/sqrt(s)."""
+
+    fwd_floor: float = 0.001  # forward (base_link x) noise at rest
+    fwd_per_speed: float = 0.03  # ... per m/s of speed (slip, speed error)
+    lat_floor: float = 0.001  # lateral (y) noise at rest
+    lat_per_speed: float = 0.015  # ... per m/s of speed (side slip)
+    lat_per_turn: float = 0.015  # ... per rad/s of turn rate (skid while turning)
+    vert_floor: float = 0.001  # vertical (z) noise at rest
+    vert_per_speed: float = 0.015  # ... per m/s of speed (terrain following)
+    trans_per_rough: float = 0.025  # added to all three per (m/s speed x rad/s roughness)
+    rot_floor: float = 0.00075  # attitude noise at rest (gyro angle random walk)
+    rot_per_turn: float = 0.005  # ... per rad/s of turn rate (scale-factor error)
+    rot_per_rough: float = 0.005  # ... per rad/s of roll/pitch rate
+
+
+@dataclass(frozen=True)
+class FixGateConfig:
+    """Gates of the planar global fix (the reference design's distance/yaw gate + Mahalanobis)."""
+
+    distance_m: float = 3.0  # |fix xy - estimate xy at t_meas| above this -> rejected
+    yaw_deg: float = 15.0  # |fix yaw - estimate yaw| above this -> rejected
+    chi2: float = 16.27  # squared Mahalanobis distance (3 dof, 99.9 %) above this -> rejected
+    # Fixes come from matching the filter's own map against one catalog, so their errors are
+    # correlated in time; a fix's covariance is multiplied by (1 + number of fixes applied with
+    # t_meas within this many seconds before it), so a burst of fixes is not counted as
+    # independent information. 0 disables.
+    correlation_s: float = 30.0
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    """Everything the filter needs; see docs/ekf.md for the model."""
+
+    motion: MotionNoiseConfig = field(default_factory=MotionNoiseConfig)
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    book: LandmarkBookConfig = field(default_factory=LandmarkBookConfig)
+    fix_gate: FixGateConfig = field(default_factory=FixGateConfig)
+    attitude_sigma_rad: float = 0.01  # roll/pitch pseudo-measurement from the IMU's gravity reference
+    attitude_period_s: float = 1.0  # how often it is applied; <= 0 disables it
+    landmark_period_s: float = 0.2  # rock frames closer than this to the last used one are skipped
+    candidate_margin_m: float = 1.0  # landmarks predicted within max_range + margin are candidates
+    max_landmarks: int = 300  # bound on the state; beyond it the stalest landmarks are marginalised
+    history_s: float = 30.0  # late fixes older than this (vs the newest input) are rejected
+    checkpoint_period_s: float = 2.0  # state snapshots for roll-back (each a copy of P), this far apart
+    future_tolerance_s: float = 0.1  # a fix up to this far ahead of the filter is applied now
+    trajectory_period_s: float = 0.0  # pose history sampling; 0 -> every step
+    blas_threads: int = 1  # BLAS threads during updates (see ekf.blas); 0 -> library default
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.max_landmarks >= 1, f"max_landmarks must be >= 1, got {self.max_landmarks}"),
+            (self.history_s > 0, f"history_s must be > 0, got {self.history_s}"),
+            (self.checkpoint_period_s > 0, f"checkpoint_period_s must be > 0, got {self.checkpoint_period_s}"),
+            (self.attitude_sigma_rad > 0, f"attitude_sigma_rad must be > 0, got {self.attitude_sigma_rad}"),
+            (self.landmark_period_s >= 0, f"landmark_period_s must be >= 0, got {self.landmark_period_s}"),
+            (self.blas_threads >= 0, f"blas_threads must be >= 0, got {self.blas_threads}"),
+            (all(v >= 0 for v in vars(self.motion).values()), "motion noise parameters must be >= 0"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ConfigError(f"invalid EkfConfig: {msg}")

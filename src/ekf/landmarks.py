@@ -1,0 +1,115 @@
+"""Landmark update of the EKF from one stereo rock frame.
+
+Candidates (landmarks predicted within range) -> association (:mod:`reloc.association`, joint
+compatibility with the full innovation covariance) -> one stacked Joseph update of the
+associated pairs -> initialisation of new landmarks with their cross covariances -> map hygiene
+(unconfirmed tentative landmarks dropped) and the bound on the landmark count (the stalest
+landmarks marginalised out).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ekf.config import EkfConfig
+from ekf.state import POSE_DIM, FilterState
+from ekf.updates import block_diag3, joseph_update
+from reloc.association import associate
+from reloc.backend import LandmarkUpdateReport
+from reloc.landmark_model import init_jacobians, point_in_base, point_jacobians, point_to_world
+from reloc.measurements import RockObservations
+
+
+def stacked_jacobian(H_pose: np.ndarray, H_l: np.ndarray) -> np.ndarray:
+    """Dense rows (3k, 6 + 3k) over ``[pose, l_1, ..., l_k]`` for k point measurements."""
+    k = H_pose.shape[0]
+    Hc = np.zeros((3 * k, POSE_DIM + 3 * k))
+    Hc[:, :POSE_DIM] = H_pose.reshape(3 * k, POSE_DIM)
+    for i in range(k):
+        Hc[3 * i : 3 * i + 3, POSE_DIM + 3 * i : POSE_DIM + 3 * i + 3] = H_l
+    return Hc
+
+
+class LandmarkUpdater:
+    """Stateless apart from its counters; operates on a :class:`FilterState` in place."""
+
+    def __init__(self, config: EkfConfig) -> None:
+        self.config = config
+        self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
+                       "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0}
+
+    def _bump(self, count: bool, **kw: int) -> None:
+        if count:
+            for k, v in kw.items():
+                self.counts[k] += int(v)
+
+    def update(self, s: FilterState, obs: RockObservations, count: bool = True) -> LandmarkUpdateReport:
+        """Process one frame in place; ``count`` False during replays (counters stay per input)."""
+        cfg = self.config
+        n_det = len(obs)
+        if obs.t - s.t_last_frame < cfg.landmark_period_s - 1e-6:
+            self._bump(count, n_frames_skipped=1)
+            return LandmarkUpdateReport(obs.t, n_det, 0, 0, n_det)
+        s.t_last_frame = obs.t
+        z, Rz, size = obs.xyz_base_m, obs.cov_base_m2, obs.size_m
+
+        cand = np.zeros(0, dtype=int)
+        zhat = np.zeros((0, 3))
+        if s.n_landmarks:
+            zhat_all = point_in_base(s.R_world_base, s.p_world, s.l_world)
+            limit = cfg.association.max_range_m + cfg.candidate_margin_m
+            cand = np.flatnonzero(np.einsum("ij,ij->i", zhat_all, zhat_all) <= limit * limit)
+            zhat = zhat_all[cand]
+        H_pose, H_l = point_jacobians(s.R_world_base, s.p_world, s.l_world[cand])
+        S_hat = self._predicted_cov(s, cand, H_pose, H_l)
+
+        def joint_cov(det: np.ndarray, ci: np.ndarray) -> np.ndarray:
+            rows = cand[ci]
+            idx = np.concatenate([np.arange(POSE_DIM), s.landmark_cols(rows)])
+            Hc = stacked_jacobian(H_pose[ci], H_l)
+            return Hc @ s.P[np.ix_(idx, idx)] @ Hc.T + block_diag3(Rz[det])
+
+        assoc = associate(z, Rz, zhat, S_hat, cfg.association, size, s.book.size_m[cand], joint_cov)
+        det, ci = assoc.pairs
+        rows = cand[ci]
+        if det.size:
+            idx = np.concatenate([np.arange(POSE_DIM), s.landmark_cols(rows)])
+            Hc = stacked_jacobian(H_pose[ci], H_l)
+            nu = (z[det] - zhat[ci]).reshape(-1)
+            s.P, res = joseph_update(s.P, idx, Hc, nu, block_diag3(Rz[det]))
+            s.inject(res.dx)
+            s.book.observe(rows, obs.t, size[det])
+
+        # hygiene and the bound first, so the state never exceeds max_landmarks
+        new = np.flatnonzero(assoc.is_new)
+        stale = s.book.stale(obs.t)
+        protect = stale.copy()
+        protect[rows] = True
+        excess = s.n_landmarks - int(stale.sum()) + new.size - cfg.max_landmarks
+        dist = np.linalg.norm(s.l_world - s.p_world, axis=1)
+        evict = s.book.evictions(excess, dist, protect)
+        s.keep_landmarks(~(stale | evict))
+        room = max(cfg.max_landmarks - s.n_landmarks, 0)
+        new = new[np.argsort(np.linalg.norm(z[new], axis=1), kind="stable")][:room]  # nearest first
+        if new.size:
+            l_new, cov_w = point_to_world(s.R_world_base, s.p_world, z[new], Rz[new])
+            G_pose, _ = init_jacobians(s.R_world_base, z[new])
+            s.append_landmarks(l_new, G_pose, cov_w)
+            s.book.add(obs.t, size[new])
+        self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
+                   n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum())
+        return LandmarkUpdateReport(obs.t, n_det, int(det.size), int(new.size), n_det - int(det.size) - int(new.size))
+
+    @staticmethod
+    def _predicted_cov(s: FilterState, cand: np.ndarray, H_pose: np.ndarray, H_l: np.ndarray) -> np.ndarray:
+        """``H P H^T`` (M, 3, 3) of each candidate's predicted measurement (pose + landmark blocks)."""
+        if cand.size == 0:
+            return np.zeros((0, 3, 3))
+        Ppp = s.P[:POSE_DIM, :POSE_DIM]
+        Ppl = s.pose_landmark_cov(cand)  # (M, 6, 3)
+        Pll = s.landmark_cov_blocks(cand)  # (M, 3, 3)
+        A = np.einsum("mij,jk,mlk->mil", H_pose, Ppp, H_pose)
+        C = np.einsum("mij,mjk,lk->mil", H_pose, Ppl, H_l)
+        D = np.einsum("ij,mjk,lk->mil", H_l, Pll, H_l)
+        S = A + C + np.transpose(C, (0, 2, 1)) + D
+        return 0.5 * (S + np.transpose(S, (0, 2, 1)))

@@ -1,0 +1,332 @@
+"""EKF-SLAM of the reference design, implementing :class:`reloc.backend.Backend`.
+
+Reads like the paper (II.C): predict from command speed + IMU orientation increments with
+dynamic process noise; update landmarks from stereo rock positions (association and the stereo
+point model live in :mod:`reloc`); apply planar global fixes behind a distance/yaw gate and a
+Mahalanobis gate; roll back and replay for late fixes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from ekf.blas import blas_limit
+from ekf.config import EkfConfig
+from ekf.errors import EkfInputError
+from ekf.history import Entry, History
+from ekf.landmarks import LandmarkUpdater
+from ekf.motion import propagate, split_step
+from ekf.so3 import project_so3
+from ekf.state import POSE_DIM, FilterState
+from ekf.updates import attitude_model, fix_model, fix_residual, joseph_update
+from reloc.backend import (
+    BackendStats,
+    FixOutcome,
+    LandmarkMap,
+    LandmarkUpdateReport,
+    PoseEstimate,
+    Trajectory,
+)
+from reloc.landmark_book import LandmarkBook
+from reloc.measurements import GlobalFix, RockObservations
+from reloc.odometry import OdometryStep
+
+log = logging.getLogger(__name__)
+
+_ORTHONORMALISE_EVERY = 200
+_T_EPS = 1e-9
+_I3 = np.eye(3)
+
+
+class EkfSlam:
+    """EKF-SLAM back-end: ``EkfSlam(initial, config)``; see :class:`reloc.backend.Backend`."""
+
+    name = "ekf"
+
+    def __init__(self, initial: PoseEstimate, config: EkfConfig | None = None) -> None:
+        self.config = config or EkfConfig()
+        T = np.asarray(initial.T_world_base, dtype=float)
+        cov = np.asarray(initial.cov, dtype=float)
+        if T.shape != (4, 4) or cov.shape != (6, 6) or not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
+            raise EkfInputError("initial pose must have a finite (4, 4) T_world_base and (6, 6) cov")
+        if not math.isfinite(initial.t):
+            raise EkfInputError(f"initial pose time is not finite: {initial.t}")
+        self._s = FilterState(
+            t=float(initial.t),
+            t_input=float(initial.t),
+            p_world=T[:3, 3].copy(),
+            R_world_base=project_so3(T[:3, :3]),
+            l_world=np.zeros((0, 3)),
+            P=0.5 * (cov + cov.T),
+            book=LandmarkBook(self.config.book),
+            t_last_attitude=float(initial.t),
+            t_last_frame=-math.inf,
+            t_last_checkpoint=float(initial.t),
+        )
+        self._landmarks = LandmarkUpdater(self.config)
+        self._hist = History(self.config.history_s)
+        self._traj_t: list[float] = []
+        self._traj_T: list[np.ndarray] = []
+        self._traj_cov: list[np.ndarray] = []
+        self._replaying = False
+        self._count = {"n_predict": 0, "n_landmark_frames": 0, "n_fixes_accepted": 0, "n_fixes_rejected": 0,
+                       "n_late_fixes": 0, "n_replayed_entries": 0, "n_attitude_updates": 0}
+        self._reject_reasons: dict[str, int] = {}
+        self._record()
+        self._hist.checkpoint(self._s, len(self._traj_t))
+
+    # ------------------------------------------------------------------ protocol
+    def predict(self, step: OdometryStep) -> None:
+        """Propagate the pose (and its cross covariances) over one odometry step."""
+        self._check_step(step)
+        self._count["n_predict"] += 1
+        self._do_step(step)
+
+    def update_landmarks(self, obs: RockObservations) -> LandmarkUpdateReport:
+        """Associate, update and initialise landmarks from one rock frame; hygiene and map bound."""
+        self._check_obs(obs)
+        self._count["n_landmark_frames"] += 1
+        with blas_limit(self.config.blas_threads):
+            return self._do_obs(obs)
+
+    def apply_fix(self, fix: GlobalFix) -> FixOutcome:
+        """Gate and apply a planar fix at ``fix.t_meas``, rolling back and replaying when it is late."""
+        with blas_limit(self.config.blas_threads):
+            return self._apply_fix(fix)
+
+    def _apply_fix(self, fix: GlobalFix) -> FixOutcome:
+        s = self._s
+        if fix.t_meas > s.t + self.config.future_tolerance_s:
+            return self._rejected(fix, f"ahead of the filter (t_meas {fix.t_meas:.3f} s > state {s.t:.3f} s)")
+        if fix.t_meas >= s.t_input:
+            outcome = self._gate_and_apply(fix)
+            if outcome.accepted:
+                self._hist.log.append(Entry("fix", fix.t_meas, fix))
+            return self._counted(outcome)
+        if fix.t_meas < s.t_input - self.config.history_s or fix.t_meas < self._hist.t_start:
+            return self._rejected(
+                fix, f"older than history (t_meas {fix.t_meas:.3f} s, history starts at "
+                f"{max(self._hist.t_start, s.t_input - self.config.history_s):.3f} s)")
+        return self._counted(self._apply_late(fix))
+
+    def estimate(self) -> PoseEstimate:
+        """Current pose of base_link in world with its (6, 6) covariance over ``[dp, dtheta]``."""
+        s = self._s
+        return PoseEstimate(t=s.t, T_world_base=self._T(), cov=s.P[:POSE_DIM, :POSE_DIM].copy())
+
+    def landmark_map(self) -> LandmarkMap:
+        """Confirmed landmarks in world with marginal covariances (tentative ones are left out)."""
+        s = self._s
+        rows = np.flatnonzero(s.book.confirmed)
+        return LandmarkMap(
+            ids=s.book.ids[rows].copy(),
+            xyz_world_m=s.l_world[rows].copy(),
+            cov_world_m2=s.landmark_cov_blocks(rows),
+            size_m=s.book.size_m[rows],
+            n_obs=s.book.n_obs[rows].copy(),
+        )
+
+    def trajectory(self) -> Trajectory:
+        """Filtered pose history (one entry per step, or per ``trajectory_period_s``)."""
+        return Trajectory(
+            t=np.array(self._traj_t),
+            T_world_base=np.array(self._traj_T).reshape(-1, 4, 4),
+            cov=np.array(self._traj_cov).reshape(-1, 6, 6),
+        )
+
+    def stats(self) -> BackendStats:
+        """Counters, with landmark, association and fix-rejection details in ``extra``."""
+        c = self._count
+        extra = {k: v for k, v in c.items() if k not in ("n_predict", "n_landmark_frames", "n_fixes_accepted", "n_fixes_rejected")}
+        extra.update(self._landmarks.counts)
+        extra["n_tentative"] = int(np.sum(~self._s.book.confirmed))
+        extra["fix_reject_reasons"] = dict(self._reject_reasons)
+        return BackendStats(
+            n_predict=c["n_predict"], n_landmark_frames=c["n_landmark_frames"],
+            n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],
+            n_landmarks=int(np.sum(self._s.book.confirmed)), extra=extra,
+        )
+
+    @property
+    def state_vector_size(self) -> int:
+        """Dimension of the error state (6 + 3 x landmarks, tentative included)."""
+        return int(self._s.P.shape[0])
+
+    def full_covariance(self) -> np.ndarray:
+        """A copy of the joint covariance (6 + 3n, 6 + 3n)."""
+        return self._s.P.copy()
+
+    # ------------------------------------------------------------------ validation
+    def _check_step(self, step: OdometryStep) -> None:
+        try:
+            vals = np.array([step.t0, step.t1, step.v_mps], dtype=float)
+            R0 = np.asarray(step.R_ref_base0, dtype=float)
+            R1 = np.asarray(step.R_ref_base1, dtype=float)
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise EkfInputError(f"OdometryStep is malformed: {exc}") from exc
+        if R0.shape != (3, 3) or R1.shape != (3, 3):
+            raise EkfInputError(f"OdometryStep rotations must be (3, 3), got {R0.shape} and {R1.shape}")
+        if not np.isfinite(np.concatenate([vals, R0.ravel(), R1.ravel()])).all():
+            raise EkfInputError(f"OdometryStep at t1={step.t1} contains NaN or inf")
+        for name, R in (("R_ref_base0", R0), ("R_ref_base1", R1)):
+            if np.abs(R.T @ R - _I3).max() > 1e-6:
+                raise EkfInputError(f"OdometryStep.{name} at t1={step.t1} is not a rotation matrix")
+        if step.t1 <= step.t0:
+            raise EkfInputError(f"OdometryStep t1 ({step.t1}) must be after t0 ({step.t0})")
+        if step.t0 < self._s.t - _T_EPS or step.t1 <= self._s.t_input:
+            raise EkfInputError(
+                f"OdometryStep [{step.t0:.6f}, {step.t1:.6f}] s is out of order: the filter is at "
+                f"{self._s.t:.6f} s (newest input {self._s.t_input:.6f} s)")
+
+    def _check_obs(self, obs: RockObservations) -> None:
+        arrays = (obs.xyz_base_m, obs.cov_base_m2, obs.size_m, obs.score)
+        if not math.isfinite(obs.t) or not all(np.all(np.isfinite(a)) for a in arrays):
+            raise EkfInputError(f"RockObservations at t={obs.t} contains NaN or inf")
+        n = len(obs)
+        if obs.xyz_base_m.shape != (n, 3) or obs.cov_base_m2.shape != (n, 3, 3) or obs.size_m.shape != (n,):
+            raise EkfInputError("RockObservations arrays have inconsistent shapes")
+        if obs.t < self._s.t_input:
+            raise EkfInputError(
+                f"RockObservations at t={obs.t:.6f} s is out of order: newest input is {self._s.t_input:.6f} s")
+
+    # ------------------------------------------------------------------ processing (also used by replay)
+    def _do_step(self, step: OdometryStep) -> None:
+        s, cfg = self._s, self.config
+        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion)
+        P = s.P
+        Ppp = F @ P[:POSE_DIM, :POSE_DIM] @ F.T + Q
+        if s.n_landmarks:
+            # only the pose rows of the cross terms change: O(n)
+            P[:3, POSE_DIM:] += F[:3, 3:] @ P[3:6, POSE_DIM:]
+            P[POSE_DIM:, :3] = P[:3, POSE_DIM:].T
+        P[:POSE_DIM, :POSE_DIM] = 0.5 * (Ppp + Ppp.T)
+        s.p_world, s.R_world_base, s.t = p1, R1, step.t1
+        s.t_input = max(s.t_input, step.t1)
+        s.n_steps_since_orthonormalise += 1
+        if s.n_steps_since_orthonormalise >= _ORTHONORMALISE_EVERY:
+            s.orthonormalise()
+        if cfg.attitude_period_s > 0 and s.t - s.t_last_attitude >= cfg.attitude_period_s - _T_EPS:
+            with blas_limit(cfg.blas_threads):
+                self._attitude_update(step.R_ref_base1)
+        self._record()
+        self._hist.log.append(Entry("step", step.t1, step))
+        if s.t - s.t_last_checkpoint >= cfg.checkpoint_period_s - _T_EPS:
+            s.t_last_checkpoint = s.t
+            self._hist.checkpoint(s, len(self._traj_t))
+            self._hist.prune(s.t_input)
+
+    def _attitude_update(self, R_ref_base: np.ndarray) -> None:
+        s = self._s
+        nu, H = attitude_model(s.R_world_base, R_ref_base)
+        R_meas = np.eye(2) * self.config.attitude_sigma_rad**2
+        s.P, res = joseph_update(s.P, np.arange(POSE_DIM), H, nu, R_meas)
+        s.inject(res.dx)
+        s.t_last_attitude = s.t
+        if not self._replaying:
+            self._count["n_attitude_updates"] += 1
+
+    def _do_obs(self, obs: RockObservations) -> LandmarkUpdateReport:
+        s = self._s
+        s.t_input = max(s.t_input, obs.t)
+        report = self._landmarks.update(s, obs, count=not self._replaying)
+        self._record()
+        self._hist.log.append(Entry("obs", obs.t, obs))
+        return report
+
+    def _gate_and_apply(self, fix: GlobalFix, force: bool = False) -> FixOutcome:
+        s, gate = self._s, self.config.fix_gate
+        h, H = fix_model(s.p_world, s.R_world_base)
+        nu = fix_residual(fix.xyyaw, h)
+        n_recent = sum(1 for t in s.fix_times if fix.t_meas - gate.correlation_s <= t <= fix.t_meas)
+        R_fix = fix.cov_xyyaw * (1.0 + n_recent) if gate.correlation_s > 0 else fix.cov_xyyaw
+        dist = math.hypot(nu[0], nu[1])
+        if not force and dist > gate.distance_m:
+            return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {gate.distance_m:.2f} m")
+        if not force and abs(math.degrees(nu[2])) > gate.yaw_deg:
+            return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
+        S = H @ s.P[:POSE_DIM, :POSE_DIM] @ H.T + R_fix
+        d2 = float(nu @ np.linalg.solve(S, nu))
+        if not force and not d2 <= gate.chi2:
+            return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {gate.chi2:.2f}", d2)
+        s.P, res = joseph_update(s.P, np.arange(POSE_DIM), H, nu, R_fix)
+        s.inject(res.dx)
+        horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
+        s.fix_times = tuple(t for t in s.fix_times if t >= horizon) + (fix.t_meas,)
+        self._record()
+        return FixOutcome(fix, True, "", d2)
+
+    def _apply_late(self, fix: GlobalFix) -> FixOutcome:
+        """Roll back to the newest checkpoint at or before t_meas, replay to t_meas (splitting the
+        step that straddles it), apply the fix, replay the rest; on rejection restore everything."""
+        saved = (self._s, self._hist.snapshot(), list(self._traj_t), list(self._traj_T), list(self._traj_cov))
+        i = self._hist.latest_before(fix.t_meas)
+        ckpt = self._hist.checkpoints[i]
+        tail = self._hist.rewind(i)
+        self._s = ckpt.state.copy()
+        del self._traj_t[ckpt.n_trajectory :], self._traj_T[ckpt.n_trajectory :], self._traj_cov[ckpt.n_trajectory :]
+        k = next((j for j, e in enumerate(tail) if e.t > fix.t_meas), len(tail))
+        before, after = tail[:k], tail[k:]
+        if after and after[0].kind == "step" and after[0].item.t0 < fix.t_meas:
+            a, b = split_step(after[0].item, fix.t_meas)
+            before = before + [Entry("step", a.t1, a)]
+            after = [Entry("step", b.t1, b)] + after[1:]
+        self._replaying = True
+        try:
+            self._replay(before)
+            outcome = self._gate_and_apply(fix)
+            if not outcome.accepted:
+                self._s, snap = saved[0], saved[1]
+                self._hist.restore(snap)
+                self._traj_t, self._traj_T, self._traj_cov = saved[2], saved[3], saved[4]
+                return outcome
+            self._hist.log.append(Entry("fix", fix.t_meas, fix))
+            self._replay(after)
+        finally:
+            self._replaying = False
+        self._count["n_late_fixes"] += 1
+        self._count["n_replayed_entries"] += len(tail)
+        return outcome
+
+    def _replay(self, entries: list[Entry]) -> None:
+        for e in entries:
+            if e.kind == "step":
+                self._do_step(e.item)
+            elif e.kind == "obs":
+                self._do_obs(e.item)
+            else:
+                self._gate_and_apply(e.item, force=True)
+                self._hist.log.append(e)
+
+    # ------------------------------------------------------------------ helpers
+    def _rejected(self, fix: GlobalFix, reason: str) -> FixOutcome:
+        return self._counted(FixOutcome(fix, False, reason))
+
+    def _counted(self, outcome: FixOutcome) -> FixOutcome:
+        if outcome.accepted:
+            self._count["n_fixes_accepted"] += 1
+        else:
+            self._count["n_fixes_rejected"] += 1
+            key = outcome.reason.split(" ")[0] if outcome.reason else "unknown"
+            self._reject_reasons[key] = self._reject_reasons.get(key, 0) + 1
+            log.info("fix at t_meas=%.3f s rejected: %s", outcome.fix.t_meas, outcome.reason)
+        return outcome
+
+    def _T(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self._s.R_world_base
+        T[:3, 3] = self._s.p_world
+        return T
+
+    def _record(self) -> None:
+        s, period = self._s, self.config.trajectory_period_s
+        if self._traj_t and self._traj_t[-1] == s.t:
+            self._traj_T[-1], self._traj_cov[-1] = self._T(), s.P[:POSE_DIM, :POSE_DIM].copy()
+            return
+        if self._traj_t and period > 0 and s.t - self._traj_t[-1] < period - _T_EPS:
+            return
+        self._traj_t.append(s.t)
+        self._traj_T.append(self._T())
+        self._traj_cov.append(s.P[:POSE_DIM, :POSE_DIM].copy())

@@ -1,0 +1,114 @@
+"""The filter state: pose, landmarks, joint covariance, landmark book and schedule clocks.
+
+Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), dl_0 (3), dl_1 (3), ...]``
+with ``R_true = Exp(dtheta) R``: the convention of :mod:`reloc.backend`, so the pose block of
+``P`` is directly the pose covariance of :class:`reloc.backend.PoseEstimate`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ekf.so3 import exp_so3, project_so3
+from reloc.landmark_book import LandmarkBook
+
+POSE_DIM = 6
+
+
+@dataclass
+class FilterState:
+    """Mutable filter state; :meth:`copy` gives an independent snapshot (checkpoints)."""
+
+    t: float  # time of the pose (end of the last step)
+    t_input: float  # newest input time processed (step end or rock frame)
+    p_world: np.ndarray  # (3,)
+    R_world_base: np.ndarray  # (3, 3)
+    l_world: np.ndarray  # (n, 3)
+    P: np.ndarray  # (6 + 3n, 6 + 3n)
+    book: LandmarkBook
+    t_last_attitude: float
+    t_last_frame: float
+    t_last_checkpoint: float
+    n_steps_since_orthonormalise: int = 0
+    fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
+
+    @property
+    def n_landmarks(self) -> int:
+        return int(self.l_world.shape[0])
+
+    def copy(self) -> FilterState:
+        """Deep copy of every array and the landmark book."""
+        return FilterState(
+            t=self.t,
+            t_input=self.t_input,
+            p_world=self.p_world.copy(),
+            R_world_base=self.R_world_base.copy(),
+            l_world=self.l_world.copy(),
+            P=self.P.copy(),
+            book=self.book.copy(),
+            t_last_attitude=self.t_last_attitude,
+            t_last_frame=self.t_last_frame,
+            t_last_checkpoint=self.t_last_checkpoint,
+            n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
+            fix_times=self.fix_times,
+        )
+
+    def inject(self, dx: np.ndarray) -> None:
+        """Apply an error-state correction ``dx`` (6 + 3n,) to the nominal state."""
+        self.p_world = self.p_world + dx[:3]
+        self.R_world_base = exp_so3(dx[3:6]) @ self.R_world_base
+        if self.n_landmarks:
+            self.l_world = self.l_world + dx[POSE_DIM:].reshape(-1, 3)
+
+    def orthonormalise(self) -> None:
+        """Remove the round-off drift of the rotation matrix."""
+        self.R_world_base = project_so3(self.R_world_base)
+        self.n_steps_since_orthonormalise = 0
+
+    def landmark_cols(self, rows: np.ndarray) -> np.ndarray:
+        """State columns (3k,) of the landmarks at ``rows`` (k,)."""
+        rows = np.asarray(rows, dtype=int)
+        return (POSE_DIM + 3 * rows[:, None] + np.arange(3)[None, :]).reshape(-1)
+
+    def landmark_cov_blocks(self, rows: np.ndarray) -> np.ndarray:
+        """Marginal covariances (k, 3, 3) of the landmarks at ``rows``."""
+        cols = self.landmark_cols(rows).reshape(-1, 3)
+        return self.P[cols[:, :, None], cols[:, None, :]]
+
+    def pose_landmark_cov(self, rows: np.ndarray) -> np.ndarray:
+        """Pose-landmark cross covariances (k, 6, 3) of the landmarks at ``rows``."""
+        cols = self.landmark_cols(rows).reshape(-1, 3)
+        return np.transpose(self.P[:POSE_DIM][:, cols], (1, 0, 2))
+
+    def append_landmarks(self, l_new: np.ndarray, G_pose: np.ndarray, cov_meas_world: np.ndarray) -> None:
+        """Initialise k landmarks ``l_new`` (k, 3) from ``l = f(pose, z)`` with Jacobian ``G_pose``
+        (k, 3, 6) w.r.t. the pose and measurement covariance in world ``cov_meas_world`` (k, 3, 3);
+        their cross covariances with the whole state are ``G P[pose, :]``."""
+        k = l_new.shape[0]
+        if k == 0:
+            return
+        n_old = self.P.shape[0]
+        G = G_pose.reshape(3 * k, POSE_DIM)
+        cross = G @ self.P[:POSE_DIM]  # (3k, N)
+        P_new = np.empty((n_old + 3 * k, n_old + 3 * k))
+        P_new[:n_old, :n_old] = self.P
+        P_new[n_old:, :n_old] = cross
+        P_new[:n_old, n_old:] = cross.T
+        block = cross[:, :POSE_DIM] @ G.T
+        for i in range(k):
+            block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += cov_meas_world[i]
+        P_new[n_old:, n_old:] = 0.5 * (block + block.T)
+        self.P = P_new
+        self.l_world = np.vstack([self.l_world, l_new])
+
+    def keep_landmarks(self, keep: np.ndarray) -> None:
+        """Marginalise out the landmarks where ``keep`` (n,) is False (drop their rows/columns)."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.all():
+            return
+        cols = np.concatenate([np.arange(POSE_DIM), self.landmark_cols(np.flatnonzero(keep))])
+        self.P = self.P[np.ix_(cols, cols)]
+        self.l_world = self.l_world[keep]
+        self.book.keep(keep)

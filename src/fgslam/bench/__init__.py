@@ -1,0 +1,1 @@
+"""Benchmarks behind ``fgslam bench ...``: one module per benchmark, plain-data results."""

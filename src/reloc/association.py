@@ -1,0 +1,190 @@
+"""Data association of stereo rock detections with landmarks, shared by both back-ends.
+
+1. Mahalanobis gating of every (detection i, landmark j) pair with ``S_ij = S_hat_j + R_z_i``.
+2. A globally consistent one-to-one assignment (Hungarian, ``linear_sum_assignment``) on the gated
+   squared distances, so two nearby rocks never both take the same landmark.
+3. Joint compatibility: the stacked innovation of the assigned pairs is tested against
+   ``chi2(3k)``; while it fails, the pair whose removal lowers the joint distance most is dropped. With a
+   ``joint_cov`` callback the test uses the full innovation covariance (pose error shared by every
+   pair, as in JCBB); without it, the block-diagonal one.
+4. A detection farther than ``new_landmark_chi2`` from every landmark is a new landmark; one
+   between the two thresholds, or one that lost its landmark to a better detection, is ambiguous
+   and rejected. Two new detections compatible with each other keep only the closer one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.stats import chi2
+
+from reloc.errors import MeasurementError
+
+_NO_MATCH = 1e12
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Gates of :func:`associate` (squared Mahalanobis distances, 3 dof)."""
+
+    gate_chi2: float = 11.345  # 99 % for 3 dof: a pair inside may be associated
+    new_landmark_chi2: float = 16.27  # 99.9 %: beyond this from every landmark -> new landmark
+    max_range_m: float = 12.0  # detections farther than this are ignored (stereo too noisy)
+    joint_confidence: float = 0.99  # joint-compatibility test level for chi2(3k)
+    max_size_ratio: float = 3.0  # a pair whose size estimates differ by more than this is not gated
+
+
+@dataclass(frozen=True)
+class Association:
+    """Result of :func:`associate` for N detections against M candidate landmarks.
+
+    ``landmark_of`` (N,) int: candidate index or -1; ``is_new`` (N,) bool: initialise a landmark;
+    ``d2`` (N,): squared Mahalanobis distance of the chosen pair (inf if none);
+    ``n_ambiguous``: detections rejected as ambiguous; ``n_out_of_range``: beyond ``max_range_m``;
+    ``n_jc_dropped``: pairs dropped by the joint-compatibility test.
+    """
+
+    landmark_of: np.ndarray
+    is_new: np.ndarray
+    d2: np.ndarray
+    n_ambiguous: int
+    n_out_of_range: int = 0
+    n_jc_dropped: int = 0
+
+    @property
+    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(detection indices, candidate indices) of the associated pairs, (k,) each."""
+        det = np.flatnonzero(self.landmark_of >= 0)
+        return det, self.landmark_of[det]
+
+
+def pairwise_d2(
+    z_base: np.ndarray, R_z: np.ndarray, zhat_base: np.ndarray, S_hat: np.ndarray, cap: float = np.inf
+) -> np.ndarray:
+    """Squared Mahalanobis distances (N, M) of detections (N, 3) to predictions (M, 3), ``S = S_hat_j + R_z_i``.
+
+    Pairs whose cheap lower bound ``|nu|^2 / trace(S)`` already exceeds ``cap`` get that bound
+    instead of the exact value (enough to compare against gates up to ``cap``)."""
+    nu = z_base[:, None, :] - zhat_base[None, :, :]
+    tr = np.trace(S_hat, axis1=1, axis2=2)[None, :] + np.trace(R_z, axis1=1, axis2=2)[:, None]
+    d2 = np.einsum("nmi,nmi->nm", nu, nu) / tr
+    near = d2 <= cap
+    if near.any():
+        i, j = np.nonzero(near)
+        S = S_hat[j] + R_z[i]
+        v = nu[i, j]
+        d2[i, j] = np.einsum("ki,ki->k", v, np.linalg.solve(S, v[..., None])[..., 0])
+    return d2
+
+
+def _check(name: str, arr: np.ndarray, shape: tuple) -> np.ndarray:
+    arr = np.asarray(arr, dtype=float)
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise MeasurementError(f"associate: {name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise MeasurementError(f"associate: {name} contains NaN or inf")
+    return arr
+
+
+def associate(
+    z_base: np.ndarray,
+    R_z: np.ndarray,
+    zhat_base: np.ndarray,
+    S_hat: np.ndarray,
+    config: AssociationConfig = AssociationConfig(),
+    size_z: np.ndarray | None = None,
+    size_hat: np.ndarray | None = None,
+    joint_cov: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> Association:
+    """Associate detections ``z_base`` (N, 3) m, covariance ``R_z`` (N, 3, 3), with predicted
+    landmark measurements ``zhat_base`` (M, 3) in base_link and their covariance ``S_hat``
+    (M, 3, 3) (``H P H^T`` without R). Optional sizes (N,), (M,) in metres veto pairs whose
+    diameters disagree. ``joint_cov(det_idx, cand_idx)`` -> (3k, 3k) full innovation covariance
+    (R included) of k pairs, in that order, for the joint-compatibility test."""
+    z_base = _check("z_base", np.reshape(z_base, (-1, 3)), (None, 3))
+    n = z_base.shape[0]
+    R_z = _check("R_z", np.reshape(R_z, (-1, 3, 3)), (n, 3, 3))
+    zhat_base = _check("zhat_base", np.reshape(zhat_base, (-1, 3)), (None, 3))
+    m = zhat_base.shape[0]
+    S_hat = _check("S_hat", np.reshape(S_hat, (-1, 3, 3)), (m, 3, 3))
+
+    landmark_of = np.full(n, -1, dtype=int)
+    d2_out = np.full(n, np.inf)
+    in_range = np.linalg.norm(z_base, axis=1) <= config.max_range_m
+    n_out = int(n - in_range.sum())
+    d2 = pairwise_d2(z_base, R_z, zhat_base, S_hat, config.new_landmark_chi2) if m else np.full((n, 0), np.inf)
+    d2[~in_range] = np.inf
+    d2_min = d2.min(axis=1) if m else np.full(n, np.inf)
+
+    gated = d2 < config.gate_chi2
+    if size_z is not None and size_hat is not None and m:
+        sz = _check("size_z", np.reshape(size_z, (-1,)), (n,))
+        sh = _check("size_hat", np.reshape(size_hat, (-1,)), (m,))
+        ratio = np.maximum(sz[:, None], 1e-6) / np.maximum(sh[None, :], 1e-6)
+        gated &= (ratio <= config.max_size_ratio) & (ratio >= 1.0 / config.max_size_ratio)
+
+    rows_ok = np.flatnonzero(gated.any(axis=1))
+    cols_ok = np.flatnonzero(gated.any(axis=0))
+    if rows_ok.size:
+        cost = np.where(gated[np.ix_(rows_ok, cols_ok)], d2[np.ix_(rows_ok, cols_ok)], _NO_MATCH)
+        r, c = linear_sum_assignment(cost)
+        keep = cost[r, c] < _NO_MATCH
+        det, cand = rows_ok[r[keep]], cols_ok[c[keep]]
+        det, cand, n_jc = _joint_compatible(det, cand, d2, z_base, zhat_base, R_z, S_hat, config, joint_cov)
+        landmark_of[det] = cand
+        d2_out[det] = d2[det, cand]
+    else:
+        n_jc = 0
+
+    is_new = in_range & (d2_min > config.new_landmark_chi2) & (landmark_of < 0)
+    is_new = _dedupe_new(is_new, z_base, R_z, config.gate_chi2)
+    n_ambiguous = int(np.sum(in_range & (landmark_of < 0) & ~is_new))
+    return Association(landmark_of, is_new, d2_out, n_ambiguous, n_out, n_jc)
+
+
+def _joint_compatible(det, cand, d2, z_base, zhat_base, R_z, S_hat, config, joint_cov):
+    """While the stacked innovation fails chi2(3k), drop the pair whose removal lowers the joint
+    distance most; returns (det, cand, n_dropped)."""
+    n_dropped = 0
+    while det.size:
+        nu = (z_base[det] - zhat_base[cand]).reshape(-1)
+        if joint_cov is not None:
+            S = np.asarray(joint_cov(det, cand), dtype=float)
+        else:
+            k = det.size
+            S = np.zeros((3 * k, 3 * k))
+            for i in range(k):
+                S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = S_hat[cand[i]] + R_z[det[i]]
+        if float(nu @ np.linalg.solve(S, nu)) <= chi2.ppf(config.joint_confidence, 3 * det.size):
+            break
+        if det.size == 1:
+            return det[:0], cand[:0], n_dropped + 1
+        best, best_d2 = 0, np.inf
+        for i in range(det.size):
+            keep = np.r_[0 : 3 * i, 3 * i + 3 : 3 * det.size]
+            joint_d2 = float(nu[keep] @ np.linalg.solve(S[np.ix_(keep, keep)], nu[keep]))
+            if joint_d2 < best_d2:
+                best, best_d2 = i, joint_d2
+        det, cand = np.delete(det, best), np.delete(cand, best)
+        n_dropped += 1
+    return det, cand, n_dropped
+
+
+def _dedupe_new(is_new: np.ndarray, z_base: np.ndarray, R_z: np.ndarray, gate_chi2: float) -> np.ndarray:
+    """Two new detections of one frame compatible with each other are one rock: keep the nearer one."""
+    idx = np.flatnonzero(is_new)
+    if idx.size < 2:
+        return is_new
+    order = idx[np.argsort(np.linalg.norm(z_base[idx], axis=1))]
+    d2 = pairwise_d2(z_base[order], R_z[order], z_base[order], R_z[order], gate_chi2)
+    out = is_new.copy()
+    kept: list[int] = []
+    for a in range(order.size):
+        if any(d2[a, b] < gate_chi2 for b in kept):
+            out[order[a]] = False
+        else:
+            kept.append(a)
+    return out

@@ -1,0 +1,137 @@
+"""Late fixes: roll back, apply at t_meas, replay; identical to the same fix delivered on time."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from ekf_synth import simulate
+
+from ekf.config import EkfConfig
+from ekf.motion import split_step
+from ekf.slam import EkfSlam
+from ekf.so3 import yaw_of
+from reloc.backend import PoseEstimate
+from reloc.measurements import GlobalFix
+
+START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))
+
+
+@pytest.fixture(scope="module")
+def run():
+    return simulate(7, duration_s=20.0, n_rocks=120)
+
+
+def make_fix(run, k, t_meas=None, t_recv=None, offset_m=(0.08, -0.05)):
+    t_meas = run.t[k] if t_meas is None else t_meas
+    return GlobalFix(
+        t_meas=t_meas, t_recv=t_recv if t_recv is not None else t_meas,
+        x_m=run.truth_p[k, 0] + offset_m[0], y_m=run.truth_p[k, 1] + offset_m[1],
+        yaw_rad=yaw_of(run.truth_R[k]) + 0.01, cov_xyyaw=np.diag([0.1**2, 0.1**2, 0.02**2]))
+
+
+def feed(ekf, run, fixes_at=None, split_at=None):
+    """Feed the run; ``fixes_at``: {step index: [fix, ...]} applied on time after that step (and its
+    frame); ``split_at``: (step index, t) splits that step and applies ``fixes_at[k]`` between."""
+    outcomes = []
+    fixes_at = fixes_at or {}
+    for k, step in enumerate(run.steps):
+        if split_at is not None and k == split_at[0]:
+            a, b = split_step(step, split_at[1])
+            ekf.predict(a)
+            outcomes += [ekf.apply_fix(f) for f in fixes_at.get(k, [])]
+            ekf.predict(b)
+        else:
+            ekf.predict(step)
+        if k in run.frames:
+            ekf.update_landmarks(run.frames[k])
+        if split_at is None or k != split_at[0]:
+            outcomes += [ekf.apply_fix(f) for f in fixes_at.get(k, [])]
+    return outcomes
+
+
+def assert_same(a: EkfSlam, b: EkfSlam, tol=1e-9):
+    ea, eb = a.estimate(), b.estimate()
+    assert ea.t == eb.t
+    assert np.allclose(ea.T_world_base, eb.T_world_base, atol=tol, rtol=0)
+    assert np.allclose(a.full_covariance(), b.full_covariance(), atol=tol, rtol=0)
+    ma, mb = a.landmark_map(), b.landmark_map()
+    assert np.array_equal(ma.ids, mb.ids)
+    assert np.allclose(ma.xyz_world_m, mb.xyz_world_m, atol=tol, rtol=0)
+    ta, tb = a.trajectory(), b.trajectory()
+    assert np.array_equal(ta.t, tb.t)
+    assert np.allclose(ta.T_world_base, tb.T_world_base, atol=tol, rtol=0)
+    assert np.allclose(ta.cov, tb.cov, atol=tol, rtol=0)
+
+
+def test_late_fix_equals_on_time(run):
+    k = 250  # fix stamped at the end of step 249 (t = 8.33 s), delivered at the end of the run
+    fix = make_fix(run, k)
+    on_time = EkfSlam(START)
+    (out_on,) = feed(on_time, run, {k - 1: [fix]})
+    late = EkfSlam(START)
+    feed(late, run)
+    out_late = late.apply_fix(dataclasses.replace(fix, t_recv=run.t[-1]))
+    assert out_on.accepted and out_late.accepted, (out_on, out_late)
+    assert out_late.mahalanobis_d2 == pytest.approx(out_on.mahalanobis_d2, abs=1e-9)
+    assert_same(on_time, late)
+    assert late.stats().extra["n_late_fixes"] == 1
+    # the fix moved the whole trajectory after t_meas
+    moved = np.abs(late.trajectory().positions_m[-1] - EkfSlam_plain(run).trajectory().positions_m[-1])
+    assert moved.max() > 1e-3
+
+
+def EkfSlam_plain(run):
+    ekf = EkfSlam(START)
+    feed(ekf, run)
+    return ekf
+
+
+def test_late_fix_between_imu_samples_equals_on_time(run):
+    k = 400
+    t_meas = run.t[k] + 0.4 * (run.t[k + 1] - run.t[k])  # inside step k
+    fix = make_fix(run, k, t_meas=t_meas)
+    on_time = EkfSlam(START)
+    feed(on_time, run, {k: [fix]}, split_at=(k, t_meas))
+    late = EkfSlam(START)
+    feed(late, run)
+    assert late.apply_fix(dataclasses.replace(fix, t_recv=run.t[-1])).accepted
+    assert_same(on_time, late)
+
+
+def test_two_late_fixes_in_reverse_order_equal_on_time(run):
+    fa, fb = make_fix(run, 200), make_fix(run, 450, offset_m=(-0.1, 0.15))
+    on_time = EkfSlam(START)
+    assert all(o.accepted for o in feed(on_time, run, {199: [fa], 449: [fb]}))
+    late = EkfSlam(START)
+    feed(late, run)
+    assert late.apply_fix(dataclasses.replace(fb, t_recv=run.t[-1])).accepted
+    assert late.apply_fix(dataclasses.replace(fa, t_recv=run.t[-1])).accepted
+    assert_same(on_time, late)
+
+
+def test_fix_older_than_history_is_rejected_and_state_untouched(run):
+    cfg = EkfConfig(history_s=5.0)
+    ekf = EkfSlam(START, cfg)
+    feed(ekf, run)
+    before = ekf.full_covariance(), ekf.estimate().T_world_base, len(ekf.trajectory())
+    out = ekf.apply_fix(make_fix(run, 100, t_recv=run.t[-1]))  # 16.7 s old
+    assert not out.accepted and out.reason.startswith("older than history")
+    assert np.array_equal(before[0], ekf.full_covariance())
+    assert np.array_equal(before[1], ekf.estimate().T_world_base)
+    assert ekf.stats().n_fixes_rejected == 1
+    assert ekf.stats().extra["fix_reject_reasons"] == {"older": 1}
+    # within the history it is accepted
+    assert ekf.apply_fix(make_fix(run, 500, t_recv=run.t[-1])).accepted
+
+
+def test_rejected_late_fix_restores_everything(run):
+    ekf = EkfSlam(START)
+    feed(ekf, run)
+    ref = EkfSlam_plain(run)
+    out = ekf.apply_fix(make_fix(run, 300, t_recv=run.t[-1], offset_m=(10.0, 0.0)))
+    assert not out.accepted and out.reason.startswith("distance gate")
+    assert_same(ekf, ref, tol=0.0)
+    # and the filter keeps working afterwards
+    assert ekf.apply_fix(make_fix(run, 300, t_recv=run.t[-1])).accepted

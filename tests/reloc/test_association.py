@@ -1,0 +1,142 @@
+"""Data association and the stereo point model shared by both back-ends."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from reloc.association import AssociationConfig, associate
+from reloc.errors import MeasurementError
+from reloc.landmark_book import LandmarkBook, LandmarkBookConfig
+from reloc.landmark_model import point_in_base, point_to_world
+
+
+def frame(rng, L, idx, R, p, sigma=0.05):
+    z = point_in_base(R, p, L[idx]) + rng.normal(0, sigma, (len(idx), 3))
+    return z, np.tile(np.eye(3) * sigma**2, (len(idx), 1, 1))
+
+
+def test_recovers_a_shuffled_subset(rng):
+    L = rng.uniform(-8, 8, (40, 3))
+    L[:, 2] = rng.uniform(-0.5, 0.5, 40)
+    R = Rotation.from_euler("z", 0.7).as_matrix()
+    p = np.array([1.0, -2.0, 0.1])
+    idx = rng.permutation(40)[:15]
+    z, Rz = frame(rng, L, idx, R=R, p=p)
+    zhat = point_in_base(R, p, L)
+    S = np.tile(np.eye(3) * 0.01**2, (40, 1, 1))
+    a = associate(z, Rz, zhat, S, AssociationConfig(max_range_m=100.0))
+    assert np.array_equal(a.landmark_of, idx)
+    assert not a.is_new.any() and a.n_ambiguous == 0
+    assert np.all(a.d2 < 11.345)
+
+
+def test_two_close_rocks_are_not_both_given_one_landmark(rng):
+    # two detections between two landmarks 0.3 m apart: nearest neighbour alone would give both to
+    # landmark 0; the assignment keeps them one-to-one
+    L = np.array([[3.0, 0.0, 0.0], [3.3, 0.0, 0.0]])
+    z = np.array([[3.12, 0.0, 0.0], [3.24, 0.0, 0.0]])
+    Rz = np.tile(np.eye(3) * 0.1**2, (2, 1, 1))
+    a = associate(z, Rz, L, np.zeros((2, 3, 3)))
+    assert sorted(a.landmark_of.tolist()) == [0, 1]
+    assert a.landmark_of.tolist() == [0, 1]  # the cheaper total assignment
+
+
+def test_new_ambiguous_and_out_of_range(rng):
+    L = np.array([[3.0, 0.0, 0.0]])
+    Rz = np.tile(np.eye(3) * 0.1**2, (4, 1, 1))
+    z = np.array([
+        [3.02, 0.0, 0.0],  # associated
+        [3.0, 0.39, 0.0],  # d2 = 0.39^2 / 0.01 = 15.2: between the gates -> ambiguous
+        [6.0, 2.0, 0.0],  # far from everything -> new
+        [20.0, 0.0, 0.0],  # beyond max_range_m
+    ])
+    a = associate(z, Rz, L, np.zeros((1, 3, 3)))
+    assert a.landmark_of.tolist() == [0, -1, -1, -1]
+    assert a.is_new.tolist() == [False, False, True, False]
+    assert a.n_ambiguous == 1 and a.n_out_of_range == 1
+    assert np.isinf(a.d2[1:]).all()
+
+
+def test_duplicate_new_detections_initialise_once():
+    z = np.array([[5.0, 1.0, 0.0], [5.05, 1.0, 0.0], [7.0, -3.0, 0.0]])
+    Rz = np.tile(np.eye(3) * 0.1**2, (3, 1, 1))
+    a = associate(z, Rz, np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    assert a.is_new.tolist() == [True, False, True]
+
+
+def test_size_veto():
+    L = np.array([[3.0, 0.0, 0.0]])
+    z = np.array([[3.0, 0.0, 0.0]])
+    Rz = np.eye(3)[None] * 0.01
+    a = associate(z, Rz, L, np.zeros((1, 3, 3)), size_z=np.array([1.2]), size_hat=np.array([0.2]))
+    assert a.landmark_of.tolist() == [-1] and not a.is_new[0]
+    a = associate(z, Rz, L, np.zeros((1, 3, 3)), size_z=np.array([0.25]), size_hat=np.array([0.2]))
+    assert a.landmark_of.tolist() == [0]
+
+
+def test_joint_compatibility_drops_the_inconsistent_pair(rng):
+    # every pair passes its own gate, but together they are not compatible with one rigid pose
+    # error: with a joint covariance in which the shared pose error dominates, the pair that
+    # disagrees with the others is dropped
+    L = np.array([[3.0, -1.0, 0.0], [4.0, 1.0, 0.0], [5.0, 0.0, 0.0]])
+    shift = np.array([0.25, 0.0, 0.0])
+    z = L + shift
+    z[2] = L[2] - shift  # moved the other way
+    Rz = np.tile(np.eye(3) * 0.02**2, (3, 1, 1))
+    S_pose = np.eye(3) * 0.2**2  # common translation uncertainty
+    S_hat = np.tile(S_pose, (3, 1, 1))
+
+    def joint_cov(det, cand):
+        k = len(det)
+        S = np.kron(np.ones((k, k)), S_pose)
+        for i in range(k):
+            S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += Rz[det[i]]
+        return S
+
+    a = associate(z, Rz, L, S_hat)
+    assert a.landmark_of.tolist() == [0, 1, 2]  # block-diagonal check sees nothing wrong
+    a = associate(z, Rz, L, S_hat, joint_cov=joint_cov)
+    assert a.n_jc_dropped == 1 and a.landmark_of.tolist() == [0, 1, -1]
+
+
+def test_bad_shapes_and_nan_are_named():
+    with pytest.raises(MeasurementError, match="R_z"):
+        associate(np.zeros((2, 3)), np.zeros((3, 3, 3)), np.zeros((1, 3)), np.zeros((1, 3, 3)))
+    with pytest.raises(MeasurementError, match="zhat_base contains NaN"):
+        associate(np.ones((1, 3)), np.eye(3)[None], np.full((1, 3), np.nan), np.zeros((1, 3, 3)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-3.1, 3.1), st.floats(-0.3, 0.3), st.floats(-0.3, 0.3), st.floats(-20, 20), st.floats(-20, 20))
+def test_point_model_round_trip(yaw, pitch, roll, x, y):
+    R = Rotation.from_euler("zyx", [yaw, pitch, roll]).as_matrix()
+    p = np.array([x, y, 0.5])
+    z = np.array([[2.0, 0.5, -0.3], [7.0, -2.0, 0.1]])
+    cov = np.stack([np.diag([0.1, 0.02, 0.03]), np.diag([0.5, 0.05, 0.05])])
+    l, c = point_to_world(R, p, z, cov)
+    assert np.allclose(point_in_base(R, p, l), z, atol=1e-9)
+    assert np.allclose(np.linalg.eigvalsh(c), np.linalg.eigvalsh(cov), atol=1e-12)
+
+
+def test_landmark_book_confirm_drop_evict():
+    book = LandmarkBook(LandmarkBookConfig(confirm_n_obs=3, confirm_window_s=2.0))
+    ids = book.add(0.0, np.array([0.3, 0.4, 0.5]))
+    assert ids.tolist() == [0, 1, 2] and not book.confirmed.any()
+    book.observe(np.array([0, 1]), 1.0, np.array([0.3, 0.5]))
+    book.observe(np.array([0]), 1.5, np.array([0.3]))
+    assert book.confirmed.tolist() == [True, False, False]
+    assert book.stale(1.9).tolist() == [False, False, False]
+    assert book.stale(2.5).tolist() == [False, True, True]
+    book.observe(np.array([1]), 3.0, np.array([0.4]))  # third sighting too late
+    assert not book.confirmed[1]
+    book.keep(np.array([True, True, False]))
+    assert book.ids.tolist() == [0, 1] and np.allclose(book.size_m, [0.3, 1.3 / 3])
+    ev = book.evictions(1, distance_m=np.array([5.0, 1.0]))
+    assert ev.tolist() == [True, False]  # seen least recently
+    ev = book.evictions(1, distance_m=np.array([5.0, 1.0]), protect=np.array([True, False]))
+    assert ev.tolist() == [False, True]
+    assert book.copy().ids is not book.ids
