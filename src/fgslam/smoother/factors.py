@@ -1,0 +1,140 @@
+"""Custom factor maths: the exact SE(2)-on-Pose3 fix residual and the rock point factor.
+
+GTSAM's Pose3 tangent is ``xi = [omega (3, rad), v (3, m)]`` in the body frame with the right
+perturbation ``T_true = T @ Exp(xi)``. The back-end protocol's covariance (reloc.backend) is over
+``[dp_world, dtheta_world]``; :func:`cov_gtsam_to_world` / :func:`cov_world_to_gtsam` convert.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """(3,) -> (3, 3) cross-product matrix."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def wrap_angle(a: float) -> float:
+    """Wrap an angle (rad) to (-pi, pi]."""
+    return float(np.arctan2(np.sin(a), np.cos(a)))
+
+
+def _swap(R: np.ndarray) -> np.ndarray:
+    A = np.zeros((6, 6))
+    A[:3, 3:] = R
+    A[3:, :3] = R
+    return A
+
+
+def cov_gtsam_to_world(R_world_base: np.ndarray, cov_body: np.ndarray) -> np.ndarray:
+    """GTSAM body-frame [rot, trans] (6, 6) covariance -> protocol [dp_world, dtheta_world] (6, 6)."""
+    A = _swap(R_world_base)
+    return A @ cov_body @ A.T
+
+
+def cov_world_to_gtsam(R_world_base: np.ndarray, cov_world: np.ndarray) -> np.ndarray:
+    """Protocol [dp_world, dtheta_world] (6, 6) covariance -> GTSAM body-frame [rot, trans] (6, 6)."""
+    A = _swap(R_world_base)
+    return A.T @ cov_world @ A
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """(4, 4) pose -> (6, 6) adjoint in GTSAM's [rot, trans] ordering."""
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(t) @ R
+    return Ad
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform."""
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def se2_residual(T_world_base: np.ndarray, xyyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (3,) [x - x_fix, y - y_fix, wrap(yaw - yaw_fix)] of a Pose3 against a planar fix,
+    and its (3, 6) Jacobian w.r.t. the pose's right perturbation [omega, v].
+
+    yaw is the heading of base_link's x axis projected on the world xy plane, so the residual is
+    exact on sloped ground (roll/pitch and z are left free, unlike a Pose3 prior with huge sigmas).
+    """
+    R, p = T_world_base[:3, :3], T_world_base[:3, 3]
+    a = R[:, 0]
+    n2 = a[0] ** 2 + a[1] ** 2
+    r = np.array([p[0] - xyyaw[0], p[1] - xyyaw[1], wrap_angle(np.arctan2(a[1], a[0]) - xyyaw[2])])
+    H = np.zeros((3, 6))
+    H[:2, 3:] = R[:2, :]  # dp = R dv
+    M = -R @ skew(np.array([1.0, 0.0, 0.0]))  # da = R [omega]x e1 = -R [e1]x omega
+    H[2, :3] = (a[0] * M[1] - a[1] * M[0]) / n2
+    return r, H
+
+
+def fix_residual(
+    T_world_kf: np.ndarray, T_kf_meas: np.ndarray, xyyaw: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (3,) of the pose ``T_world_kf @ T_kf_meas`` (keyframe pose composed with the
+    odometry to the fix time) against a planar fix, and its (3, 6) Jacobian w.r.t. the keyframe."""
+    r, H_meas = se2_residual(T_world_kf @ T_kf_meas, xyyaw)
+    # T_kf Exp(xi) T_rel = T_kf T_rel Exp(Ad(T_rel^-1) xi)
+    return r, H_meas @ adjoint(inverse(T_kf_meas))
+
+
+def fix_covariance(
+    T_world_meas: np.ndarray, cov_rel_body: np.ndarray, cov_xyyaw: np.ndarray
+) -> np.ndarray:
+    """(3, 3) covariance of the fix residual: the fix's own plus the odometry's from the keyframe
+    to the fix time (``cov_rel_body`` (6, 6), GTSAM body frame at the fix time)."""
+    _, H = se2_residual(T_world_meas, np.zeros(3))
+    return cov_xyyaw + H @ cov_rel_body @ H.T
+
+
+def make_fix_factor(
+    key: int, T_kf_meas: np.ndarray, xyyaw: np.ndarray, cov: np.ndarray, cauchy_k: float
+) -> gtsam.CustomFactor:
+    """CustomFactor on Pose3 ``key``: exact (x, y, yaw) residual at ``T_kf_meas`` (4, 4) after the
+    keyframe, covariance ``cov`` (3, 3), under a Cauchy kernel of scale ``cauchy_k``."""
+    T_rel = np.array(T_kf_meas, dtype=float)
+    target = np.array(xyyaw, dtype=float)
+    base = gtsam.noiseModel.Gaussian.Covariance(np.array(cov, dtype=float))
+    model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), base)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        T = values.atPose3(this.keys()[0]).matrix()
+        r, J = fix_residual(T, T_rel, target)
+        if H is not None:
+            H[0] = J
+        return r
+
+    return gtsam.CustomFactor(model, [key], error)
+
+
+def point_factor_covariance(z_base: np.ndarray, cov_base: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of a bearing-range measurement [bearing tangent (2), range (1)] of a point
+    ``z_base`` (3,) with base-frame covariance ``cov_base`` (3, 3). The bearing tangent is in the
+    basis of ``gtsam.Unit3(z_base)``, as GTSAM's BearingRange error uses."""
+    r = float(np.linalg.norm(z_base))
+    u = z_base / r
+    B = gtsam.Unit3(z_base).basis()
+    J = np.vstack([B.T / r, u[None, :]])
+    C = J @ cov_base @ J.T
+    return 0.5 * (C + C.T)
+
+
+def make_point_factor(
+    pose_key: int, point_key: int, z_base: np.ndarray, cov_base: np.ndarray, huber_k: float
+) -> gtsam.BearingRangeFactor3D:
+    """Rock seen at ``z_base`` (3,) m in base_link with covariance ``cov_base`` (3, 3): a C++
+    BearingRangeFactor3D (Pose3 -> Point3) whose bearing/range covariance is the exact linear image
+    of ``cov_base``, under a Huber kernel. Stereo noise is nearly constant in bearing and grows with
+    range squared, so this parameterisation fits it better than a Cartesian one."""
+    z = np.asarray(z_base, dtype=float)
+    base = gtsam.noiseModel.Gaussian.Covariance(point_factor_covariance(z, cov_base))
+    model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), base)
+    return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(z), float(np.linalg.norm(z)), model)

@@ -1,0 +1,186 @@
+"""Rock landmarks of the smoother: association through the shared front-end, candidates until
+constrained, insertion into the graph, cached positions and covariances.
+
+A detection not associated with any landmark starts a *candidate* (not in the graph). Its
+observations are kept, and once ``min_obs_to_insert`` of them come from distinct keyframes the
+rock is constrained in 3D from more than one viewpoint: it becomes a Point3 ``L(id)`` with all its
+factors. Association needs predicted measurements and their covariance ``S_hat``; iSAM2 marginals
+per landmark per frame would cost more than the whole update, so the store keeps, per landmark,
+an information-fused covariance of its observations (pose taken as exact, i.e. relative to the
+observing poses) and adds the odometry uncertainty since the last keyframe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fgslam.smoother.config import LandmarkConfig
+from reloc.association import associate
+from reloc.landmark_model import point_in_base, point_to_world
+
+CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
+
+
+@dataclass
+class LandmarkRecord:
+    """One rock: world position (3,) m and covariance (3, 3) m^2, status, observation counts."""
+
+    lid: int
+    xyz_world_m: np.ndarray
+    cov_world_m2: np.ndarray
+    size_sum_m: float
+    n_obs: int
+    t_first: float
+    t_last: float
+    status: int = CANDIDATE
+    pending: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)  # (kf, z, R_z)
+
+
+@dataclass(frozen=True)
+class FrameAssociation:
+    """What one rock frame produced: observations of graph landmarks ``(lid, z (3,), R_z (3, 3))``,
+    landmarks ready to enter the graph, and report counts."""
+
+    observed: list[tuple[int, np.ndarray, np.ndarray]]
+    to_insert: list[LandmarkRecord]
+    n_associated: int
+    n_new: int
+    n_rejected: int
+
+
+class LandmarkStore:
+    """All landmarks by id; the smoother owns the graph side."""
+
+    def __init__(self, cfg: LandmarkConfig) -> None:
+        self.cfg = cfg
+        self.records: dict[int, LandmarkRecord] = {}
+        self.live: dict[int, LandmarkRecord] = {}  # candidates and graph landmarks (not retired)
+        self._retired: list[int] = []
+        self.next_id = 0
+
+    def nearby(self, p_world: np.ndarray) -> list[LandmarkRecord]:
+        """Candidates and graph landmarks within the association range of ``p_world`` (3,)."""
+        out = list(self.live.values())
+        if not out:
+            return out
+        xyz = np.array([r.xyz_world_m for r in out])
+        near = np.linalg.norm(xyz[:, :2] - p_world[:2], axis=1) <= self.cfg.association.max_range_m + 2.0
+        return [out[i] for i in np.flatnonzero(near)]
+
+    def in_view(self, R_world_base: np.ndarray, p_world: np.ndarray) -> list[LandmarkRecord]:
+        """Live landmarks that can be associated from this pose: in range and not behind."""
+        out = list(self.live.values())
+        if not out:
+            return out
+        z = point_in_base(R_world_base, p_world, np.array([r.xyz_world_m for r in out]))
+        ok = (np.linalg.norm(z, axis=1) <= self.cfg.association.max_range_m + 1.5) & (z[:, 0] > -1.0)
+        return [out[i] for i in np.flatnonzero(ok)]
+
+    def associate_frame(
+        self,
+        t: float,
+        kf: int,
+        T_world_base: np.ndarray,
+        cov_rel_pose: np.ndarray,
+        z_base: np.ndarray,
+        R_z: np.ndarray,
+        size_m: np.ndarray,
+        z_kf: np.ndarray,
+        R_kf: np.ndarray,
+    ) -> FrameAssociation:
+        """Associate detections ``z_base`` (N, 3) with covariance ``R_z`` (N, 3, 3) seen from the
+        keyframe ``kf`` at ``T_world_base`` (4, 4); ``cov_rel_pose`` (6, 6, GTSAM body frame) is
+        the pose uncertainty relative to the landmarks (odometry since the keyframe). ``z_kf`` (N, 3)
+        and ``R_kf`` (N, 3, 3) are the same detections moved onto the keyframe, for the factors."""
+        R, p = T_world_base[:3, :3], T_world_base[:3, 3]
+        rng = np.linalg.norm(z_base, axis=1)
+        usable = rng >= self.cfg.min_range_m
+        z_base, R_z, size_m = z_base[usable], R_z[usable], size_m[usable]
+        z_kf, R_kf = z_kf[usable], R_kf[usable]
+        n_rejected = int((~usable).sum())
+        cands = self.in_view(R, p)
+        if cands:
+            l_world = np.array([r.xyz_world_m for r in cands])
+            zhat = point_in_base(R, p, l_world)
+            C_l = np.array([r.cov_world_m2 for r in cands])
+            S_hat = R.T @ C_l @ R
+            # pose part in the body frame: dz = [zhat]x domega - dv
+            H = np.zeros((len(cands), 3, 6))
+            H[:, :, :3] = _skew_batch(zhat)
+            H[:, :, 3:] = -np.eye(3)
+            S_hat = S_hat + H @ cov_rel_pose @ np.swapaxes(H, 1, 2)
+            sizes = np.array([r.size_sum_m / max(r.n_obs, 1) for r in cands])
+        else:
+            zhat, S_hat, sizes = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+        a = associate(z_base, R_z, zhat, S_hat, self.cfg.association, size_m, sizes)
+        observed: list[tuple[int, np.ndarray, np.ndarray]] = []
+        to_insert: list[LandmarkRecord] = []
+        l_new, c_new = point_to_world(R, p, z_base, R_z)
+        for i in range(z_base.shape[0]):
+            j = int(a.landmark_of[i])
+            if j >= 0:
+                rec = cands[j]
+                self._fuse(rec, l_new[i], c_new[i], float(size_m[i]), t)
+                if rec.status == ACTIVE:
+                    observed.append((rec.lid, z_kf[i], R_kf[i]))
+                else:
+                    if not rec.pending or rec.pending[-1][0] != kf:
+                        rec.pending.append((kf, z_kf[i], R_kf[i]))
+                    if len(rec.pending) >= self.cfg.min_obs_to_insert:
+                        to_insert.append(rec)
+            elif a.is_new[i]:
+                rec = LandmarkRecord(self.next_id, l_new[i], c_new[i], float(size_m[i]), 1, t, t)
+                rec.pending.append((kf, z_kf[i], R_kf[i]))
+                self.records[rec.lid] = rec
+                self.live[rec.lid] = rec
+                self.next_id += 1
+        n_assoc = int((a.landmark_of >= 0).sum())
+        n_new = int(a.is_new.sum())
+        return FrameAssociation(observed, to_insert, n_assoc, n_new, n_rejected + a.n_ambiguous + a.n_out_of_range)
+
+    @staticmethod
+    def _fuse(rec: LandmarkRecord, l: np.ndarray, C: np.ndarray, size: float, t: float) -> None:
+        info_old, info_new = np.linalg.inv(rec.cov_world_m2), np.linalg.inv(C)
+        cov = np.linalg.inv(info_old + info_new)
+        if rec.status != ACTIVE:  # graph landmarks take their position from the solver
+            rec.xyz_world_m = cov @ (info_old @ rec.xyz_world_m + info_new @ l)
+        rec.cov_world_m2 = 0.5 * (cov + cov.T)
+        rec.size_sum_m += size
+        rec.n_obs += 1
+        rec.t_last = t
+
+    def prune_candidates(self, t: float, oldest_kf: int) -> None:
+        """Drop candidates unconfirmed for ``candidate_timeout_s`` and pending observations on
+        keyframes older than ``oldest_kf`` (marginalized)."""
+        for lid in [lid for lid, r in self.live.items() if r.status == CANDIDATE]:
+            rec = self.live[lid]
+            rec.pending = [o for o in rec.pending if o[0] >= oldest_kf]
+            if t - rec.t_first > self.cfg.candidate_timeout_s or not rec.pending:
+                self.drop(lid)
+
+    def retire(self, lid: int) -> None:
+        """Freeze a landmark that left the fixed-lag window; the oldest retired ones are dropped."""
+        self.records[lid].status = RETIRED
+        self.live.pop(lid, None)
+        self._retired.append(lid)
+        while len(self._retired) > self.cfg.max_retired:
+            self.records.pop(self._retired.pop(0), None)
+
+    def drop(self, lid: int) -> None:
+        """Forget a landmark entirely (a candidate that timed out, or one whose update failed)."""
+        self.records.pop(lid, None)
+        self.live.pop(lid, None)
+
+    def mapped(self) -> list[LandmarkRecord]:
+        """Landmarks of the map (in the graph, or retired from it), in id order."""
+        return [r for r in self.records.values() if r.status != CANDIDATE]
+
+
+def _skew_batch(v: np.ndarray) -> np.ndarray:
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out

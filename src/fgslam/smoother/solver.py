@@ -1,0 +1,196 @@
+"""The iSAM2 solver behind the smoother: full-history ISAM2 or IncrementalFixedLagSmoother, with
+input validation and a way back after a failed update.
+
+GTSAM leaves an ISAM2 unusable when an update throws (e.g. "Indeterminant linear system"), so:
+inputs are validated first (finite values, every key known); risky updates (fixes, retractions)
+can be preceded by :meth:`Solver.snapshot` (a copy of the ISAM2, full mode); and any failure is
+recovered by rebuilding the solver from its own factor graph and linearization point without the
+failed batch (and switching Cholesky -> QR when the failure was an indeterminant system).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import gtsam
+import numpy as np
+
+from fgslam.errors import SmootherError
+from fgslam.smoother.config import Factorization, SmootherConfig
+
+log = logging.getLogger(__name__)
+
+
+class SolverUpdateError(SmootherError):
+    """An iSAM2 update failed; the solver was restored and the batch dropped."""
+
+
+def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Params:
+    p = gtsam.ISAM2Params()
+    p.setRelinearizeThreshold(cfg.relinearize_threshold)
+    p.relinearizeSkip = cfg.relinearize_skip
+    p.setFactorization("QR" if factorization is Factorization.QR else "CHOLESKY")
+    p.findUnusedFactorSlots = False  # new factor indices are then predictable and stable
+    return p
+
+
+def _value_finite(values: gtsam.Values, key: int) -> bool:
+    v = values.atPose3(key).matrix() if _is_pose(values, key) else values.atPoint3(key)
+    return bool(np.all(np.isfinite(v)))
+
+
+class Solver:
+    """One incremental solver; ``fixed_lag_s`` > 0 selects the fixed-lag smoother."""
+
+    def __init__(self, cfg: SmootherConfig) -> None:
+        self.cfg = cfg
+        self.factorization = cfg.factorization
+        self.fixed_lag = cfg.fixed_lag_s > 0.0
+        self._alive: set[int] = set()
+        self._new_solver()
+        self.n_recoveries = 0
+
+    def _new_solver(self) -> None:
+        params = _params(self.cfg, self.factorization)
+        if self.fixed_lag:
+            self.ifls = gtsam.IncrementalFixedLagSmoother(self.cfg.fixed_lag_s, params)
+            self.isam = None
+        else:
+            self.isam = gtsam.ISAM2(params)
+            self.ifls = None
+
+    # ------------------------------------------------------------------ queries
+    def alive(self, key: int) -> bool:
+        """Whether ``key`` is a variable of the solver (not yet marginalized)."""
+        return key in self._alive
+
+    def pose(self, key: int) -> np.ndarray:
+        """Current estimate of Pose3 ``key`` as (4, 4)."""
+        s = self.ifls if self.fixed_lag else self.isam
+        return s.calculateEstimatePose3(key).matrix()
+
+    def point(self, key: int) -> np.ndarray:
+        """Current estimate of Point3 ``key`` (3,)."""
+        s = self.ifls if self.fixed_lag else self.isam
+        return np.asarray(s.calculateEstimatePoint3(key), dtype=float)
+
+    def marginal_cov(self, key: int) -> np.ndarray:
+        """Marginal covariance of ``key`` (GTSAM tangent, body frame for poses)."""
+        s = self.ifls if self.fixed_lag else self.isam
+        return np.asarray(s.marginalCovariance(key), dtype=float)
+
+    def factors(self) -> gtsam.NonlinearFactorGraph:
+        """The solver's current nonlinear factor graph (removed slots are null)."""
+        return self.ifls.getFactors() if self.fixed_lag else self.isam.getFactorsUnsafe()
+
+    def theta(self) -> gtsam.Values:
+        """The linearization point."""
+        return self.ifls.getLinearizationPoint() if self.fixed_lag else self.isam.getLinearizationPoint()
+
+    # ------------------------------------------------------------------ update
+    def validate(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int]) -> None:
+        """Raise SolverUpdateError if a new value is not finite, a key is unknown, or a value is
+        already in the solver."""
+        new_keys = set(values.keys())
+        for k in new_keys:
+            if k in self._alive:
+                raise SolverUpdateError(f"value {gtsam.DefaultKeyFormatter(k)} is already in the solver")
+            if not _value_finite(values, k):
+                raise SolverUpdateError(f"value {gtsam.DefaultKeyFormatter(k)} is not finite")
+        for i in range(graph.size()):
+            f = graph.at(i)
+            for k in f.keys():  # noqa: SIM118 (a gtsam factor is not iterable)
+                if k not in new_keys and k not in self._alive:
+                    raise SolverUpdateError(
+                        f"factor {i} uses key {gtsam.DefaultKeyFormatter(k)} that is not in the solver"
+                    )
+        n = self.factors().size()
+        bad = [i for i in remove if i < 0 or i >= n]
+        if bad:
+            raise SolverUpdateError(f"factor indices {bad} to remove do not exist")
+
+    def update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        timestamps: dict[int, float] | None = None,
+        remove: list[int] | None = None,
+    ) -> list[int]:
+        """One iSAM2 update; returns the indices of the new factors. Raises SolverUpdateError after
+        restoring the solver when the update fails (the batch is then not applied)."""
+        remove = list(remove or [])
+        self.validate(graph, values, remove)
+        n_before = self.factors().size()
+        try:
+            if self.fixed_lag:
+                self.ifls.update(graph, values, dict(timestamps or {}), remove)
+                idx = list(self.ifls.getISAM2Result().getNewFactorsIndices())
+            else:
+                res = self.isam.update(graph, values, remove)
+                idx = list(res.getNewFactorsIndices())
+        except RuntimeError as exc:
+            self._recover(n_before, graph.size(), set(values.keys()), str(exc))
+            raise SolverUpdateError(f"iSAM2 update failed and was rolled back: {exc}") from exc
+        self._alive |= set(values.keys())
+        if self.fixed_lag:
+            self._alive = set(self.ifls.timestamps().keys())
+        return idx
+
+    def extra_iterations(self, n: int) -> None:
+        """Run ``n`` empty updates: iSAM2 takes one Gauss-Newton step per update."""
+        for _ in range(n):
+            if self.fixed_lag:
+                self.ifls.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, [])
+            else:
+                self.isam.update()
+
+    # ------------------------------------------------------------------ way back
+    def snapshot(self) -> gtsam.ISAM2 | None:
+        """A copy of the full-mode ISAM2 (None in fixed-lag mode, which recovers by rebuilding)."""
+        return None if self.fixed_lag else gtsam.ISAM2(self.isam)
+
+    def restore(self, snap: gtsam.ISAM2 | None, alive: set[int]) -> None:
+        """Go back to ``snap`` taken by :meth:`snapshot`, with the key set at that time."""
+        if snap is not None:
+            self.isam = snap
+            self._alive = set(alive)
+
+    def _recover(self, n_before: int, n_new: int, new_keys: set[int], message: str) -> None:
+        """Rebuild the solver from its graph and linearization point without the failed batch."""
+        self.n_recoveries += 1
+        first = next((ln for ln in message.splitlines() if ln.strip()), message)
+        if "ndetermin" in message and self.factorization is Factorization.CHOLESKY:  # 4.3 spells it "Indeterminate"
+            log.warning("Cholesky failed (%s); switching the smoother to QR", first)
+            self.factorization = Factorization.QR
+        old_graph, old_theta = self.factors(), self.theta()
+        stamps = dict(self.ifls.timestamps()) if self.fixed_lag else {}
+        self._index_map = {}
+        graph = gtsam.NonlinearFactorGraph()
+        for i in range(min(n_before, old_graph.size())):
+            f = old_graph.at(i)
+            if f is None:
+                continue
+            self._index_map[i] = graph.size()
+            graph.add(f)
+        theta = gtsam.Values()
+        for k in old_theta.keys():  # noqa: SIM118 (gtsam.Values)
+            if k not in new_keys or k in self._alive:
+                theta.insert(k, old_theta.atPose3(k) if _is_pose(old_theta, k) else old_theta.atPoint3(k))
+        stamps = {k: t for k, t in stamps.items() if theta.exists(k)}
+        self._new_solver()
+        if self.fixed_lag:
+            self.ifls.update(graph, theta, stamps, [])
+            self._alive = set(self.ifls.timestamps().keys())
+        else:
+            self.isam.update(graph, theta)
+            self._alive = set(theta.keys())
+        log.warning("iSAM2 update failed (%s); solver rebuilt from %d factors", first, graph.size())
+
+    def take_index_map(self) -> dict[int, int]:
+        """Old -> new factor indices after the last recovery (empty if none happened since)."""
+        m, self._index_map = getattr(self, "_index_map", {}), {}
+        return m
+
+
+def _is_pose(values: gtsam.Values, key: int) -> bool:
+    return gtsam.Symbol(key).chr() == ord("x")
