@@ -10,10 +10,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from reloc.errors import MeasurementError
 from reloc.measurements import CmdVel, ImuSample, WheelOdometry
+
+
+def _quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion (x, y, z, w); cheaper than scipy for one sample."""
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -59,6 +70,7 @@ class OdometryAssembler:
         self._v = 0.0
         self._w = 0.0
         self._last_imu: ImuSample | None = None
+        self._last_R: np.ndarray | None = None
         self._last_t = -np.inf
 
     def _check_time(self, t: float, what: str) -> None:
@@ -79,20 +91,26 @@ class OdometryAssembler:
             return None
         if not isinstance(m, ImuSample):
             raise MeasurementError(f"OdometryAssembler cannot consume {type(m).__name__}")
-        prev, self._last_imu = self._last_imu, m
+        prev = self._last_imu
+        if prev is not None:
+            dt = m.t - prev.t
+            if dt <= 0.0:
+                raise MeasurementError(f"duplicate IMU stamp t={m.t:.6f} s")
+            if dt > self.max_gap_s:
+                raise MeasurementError(
+                    f"IMU gap of {dt:.3f} s at t={m.t:.3f} s exceeds max_gap_s={self.max_gap_s}"
+                )
+        # Each sample's rotation matrix is computed once and reused as the next step's start.
+        R_prev, R_curr = self._last_R, _quat_xyzw_to_matrix(m.quat_xyzw)
+        self._last_imu, self._last_R = m, R_curr
         if prev is None:
             return None
-        dt = m.t - prev.t
-        if dt <= 0.0:
-            raise MeasurementError(f"duplicate IMU stamp t={m.t:.6f} s")
-        if dt > self.max_gap_s:
-            raise MeasurementError(f"IMU gap of {dt:.3f} s at t={m.t:.3f} s exceeds max_gap_s={self.max_gap_s}")
         return OdometryStep(
             t0=prev.t,
             t1=m.t,
             v_mps=self._v,
             yaw_rate_cmd_radps=self._w,
-            R_ref_base0=Rotation.from_quat(prev.quat_xyzw).as_matrix(),
-            R_ref_base1=Rotation.from_quat(m.quat_xyzw).as_matrix(),
+            R_ref_base0=R_prev,
+            R_ref_base1=R_curr,
             gyro_radps=0.5 * (np.asarray(prev.gyro_radps) + np.asarray(m.gyro_radps)),
         )
