@@ -1,0 +1,79 @@
+"""``fgslam bench match``: the constellation matcher's goals, measured, side by side with astroalign."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from fgslam.cli.app import bench_app
+
+
+def _ints(text: str | None) -> tuple[int, ...] | None:
+    return None if text is None else tuple(int(v) for v in text.split(",") if v.strip())
+
+
+def _floats(text: str | None) -> tuple[float, ...] | None:
+    return None if text is None else tuple(float(v) for v in text.split(",") if v.strip())
+
+
+@bench_app.command("match")
+def bench_match_cmd(
+    quick: bool = typer.Option(False, "--quick", help="Small run (about a minute)."),
+    sizes: str | None = typer.Option(None, "--sizes", help="Catalog sizes, e.g. 300,3000,100000."),
+    layouts: str | None = typer.Option(None, "--layouts", help="uniform,clustered"),
+    sigmas: str | None = typer.Option(None, "--sigmas", help="Position noise levels (m), e.g. 0.05,0.2."),
+    queries: int | None = typer.Option(None, "--queries", help="Queries per (size, layout, sigma)."),
+    outside_queries: int | None = typer.Option(None, "--outside-queries", help="Out-of-catalog queries per setting."),
+    detector_queries: int | None = typer.Option(None, "--detector-queries", help="Queries per layout with detector qualities."),
+    astro_queries: int | None = typer.Option(None, "--astro-queries", help="Queries also given to astroalign (0: skip)."),
+    astro_sizes: str | None = typer.Option(None, "--astro-sizes", help="Catalog sizes compared with astroalign."),
+    build_size: int | None = typer.Option(None, "--build-size", help="Rocks of the index-build measurement."),
+    seed: int = typer.Option(0, "--seed", help="Seed of every random draw."),
+    out: Path | None = typer.Option(None, "--out", help="Directory for results.json and table.md."),
+) -> None:
+    """Success, false matches, accuracy, speed and index build of the matcher (tables on stdout)."""
+    import dataclasses
+    import json
+
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from fgslam.bench.match import (
+        MatchBenchConfig,
+        quick_config,
+        result_tables,
+        run_match_bench,
+        tables_markdown,
+    )
+
+    cfg = quick_config(seed) if quick else MatchBenchConfig(seed=seed)
+    overrides = {
+        "sizes": _ints(sizes), "layouts": None if layouts is None else tuple(layouts.split(",")),
+        "sigmas_m": _floats(sigmas), "queries": queries, "outside_queries": outside_queries,
+        "detector_queries": detector_queries, "astro_queries": astro_queries,
+        "astro_sizes": _ints(astro_sizes), "build_size": build_size,
+    }
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    err = Console(stderr=True)
+    with Progress(TextColumn("{task.description:<40}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=err) as progress:
+        def tick(name: str, total: int):
+            task = progress.add_task(name, total=total)
+            return lambda: progress.advance(task)
+
+        res = run_match_bench(cfg, progress=tick)
+    console = Console(width=max(Console().width, 220))
+    for title, cols, rows in result_tables(res):
+        table = Table(title=title)
+        for c in cols:
+            table.add_column(c, justify="right")
+        for r in rows:
+            table.add_row(*r)
+        console.print(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "results.json").write_text(json.dumps(res, indent=2, default=float))
+        (out / "table.md").write_text(tables_markdown(res))
+        err.print(f"wrote {out / 'results.json'} and {out / 'table.md'}")

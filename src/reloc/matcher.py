@@ -1,0 +1,364 @@
+"""Constellation matcher: find where a local rock map lies in the catalog, or say it is not there.
+
+The composer reads like the reference design (section II.B), with the fixes the issue asks for:
+
+1. sample local triangles (each rock with pairs of its k nearest neighbours), in seeded order;
+2. look each one up in the catalog's geometric hash (sides within tolerance, same handedness),
+   reject candidates whose rock sizes disagree, fit a 2D similarity (Procrustes) to the three
+   vertex pairs, reject scales far from 1;
+3. vote the candidate poses into (heading, position) bins; verify the most-voted bins: inliers
+   under the candidate, re-fit on the inliers (Umeyama), re-score; more inliers win, lower RMSE
+   breaks ties;
+4. accept the best pose only if its inlier count is improbable for a wrong pose at the catalog's
+   local density (binomial tail x number of hypotheses tried); stop early once it is
+   overwhelmingly so.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from reloc.catalog import Catalog
+from reloc.descriptors import label_triangles
+from reloc.errors import RelocError
+from reloc.hypotheses import Hypotheses, LocalTriangles, generate_hypotheses, pose_bins
+from reloc.match_result import MatchResult, similarity_covariance
+from reloc.procrustes import Similarity2D, umeyama_2d
+from reloc.sampling import knn_triangles
+from reloc.scoring import (
+    Inliers,
+    log10_binomial_tail,
+    score_points,
+    size_compatible_fraction,
+)
+
+__all__ = ["ConstellationMatcher", "MatchInputError", "MatchPrior", "MatchResult", "MatcherConfig"]
+
+log = logging.getLogger(__name__)
+
+
+class MatchInputError(RelocError, ValueError):
+    """The local map given to the matcher is malformed (shape, NaN, non-positive sizes)."""
+
+
+@dataclass(frozen=True, slots=True)
+class MatcherConfig:
+    """Matcher parameters (defaults in code). Lengths in metres.
+
+    ``sigma_m``: expected per-axis position noise between local map and catalog; the side
+    tolerance (``side_tol_sigmas`` x sqrt(2) x sigma), inlier radius (``inlier_sigmas`` x sigma,
+    at least ``min_inlier_radius_m``) and vote bins derive from it. ``scale_tol``: allowed |scale-1|.
+    ``size_ratio_max``: largest allowed ratio of matched rock diameters (None: no size check).
+    ``local_neighbours``: k for local triangles. ``batch_triangles``: local triangles in the first batch, doubling up to
+    ``max_batch_triangles``;
+    ``verify_per_batch``: vote bins verified per batch; ``first_stage_factor``: inlier radius
+    multiplier of the first scoring stage (a 3-point pose is noisier than a re-fitted one);
+    ``refits``: least-squares re-fit/re-score rounds; ``polish_sigmas``: final fit on pairs
+    closer than this many sigma; ``growth_reach_m``: distances from the hypothesis' triangle
+    within which inliers are collected and re-fitted before the whole map is scored;
+    ``density_radius_m``: radius of the local catalog-density estimate (at least 4 inlier radii);
+    ``min_inliers``: fewest inliers ever accepted. ``max_log10_false_alarm``: acceptance
+    threshold on log10(expected number of wrong poses this good); ``early_exit_log10``: stop the
+    search below this. ``metric``: both maps are metric, so the final least-squares re-fit is
+    rigid (scale 1; a 3-point similarity still checks the scale of every candidate against 1
+    within ``scale_tol``); False re-fits a similarity. ``seed``: order in which local triangles
+    are tried.
+    """
+
+    sigma_m: float = 0.1
+    side_tol_sigmas: float = 2.0
+    inlier_sigmas: float = 2.5
+    min_inlier_radius_m: float = 0.1
+    scale_tol: float = 0.02
+    size_ratio_max: float | None = 1.6
+    local_neighbours: int = 6
+    batch_triangles: int = 8
+    max_batch_triangles: int = 128
+    verify_per_batch: int = 16
+    first_stage_factor: float = 2.0
+    refits: int = 2
+    polish_sigmas: float = 2.0
+    growth_reach_m: tuple[float, ...] = (3.0, 6.0)
+    density_radius_m: float = 1.5
+    min_inliers: int = 5
+    max_log10_false_alarm: float = -3.0
+    early_exit_log10: float = -8.0
+    metric: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (self.sigma_m > 0 and self.side_tol_sigmas > 0 and self.inlier_sigmas > 0):
+            raise MatchInputError(f"MatcherConfig sigmas must be positive: {self}")
+        if self.size_ratio_max is not None and self.size_ratio_max <= 1.0:
+            raise MatchInputError(f"MatcherConfig.size_ratio_max must be > 1, got {self.size_ratio_max}")
+        if self.local_neighbours < 2 or self.batch_triangles < 1 or self.verify_per_batch < 1:
+            raise MatchInputError(f"MatcherConfig counts out of range: {self}")
+
+    @property
+    def inlier_radius_m(self) -> float:
+        return max(self.inlier_sigmas * self.sigma_m, self.min_inlier_radius_m)
+
+    @property
+    def side_tol_m(self) -> float:
+        return self.side_tol_sigmas * math.sqrt(2.0) * self.sigma_m
+
+
+@dataclass(frozen=True, slots=True)
+class MatchPrior:
+    """Optional search restriction: the local map's centroid lies within ``radius_m`` of
+    ``center_xy`` (2,) in the world frame."""
+
+    center_xy: np.ndarray
+    radius_m: float
+
+
+@dataclass
+class _Search:
+    """Mutable state of one search."""
+
+    n_hypotheses: int = 0
+    n_verified: int = 0
+    keys: list[np.ndarray] = field(default_factory=list)
+    hyps: list[Hypotheses] = field(default_factory=list)
+    verified: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    best: tuple[Similarity2D, Inliers] | None = None
+    size_check: tuple[np.ndarray, np.ndarray, float] | None = None
+    size_fraction: float = 1.0
+    done: bool = False
+
+
+class ConstellationMatcher:
+    """Matches local rock maps against one :class:`~reloc.catalog.Catalog`."""
+
+    def __init__(self, catalog: Catalog, config: MatcherConfig | None = None) -> None:
+        self.catalog = catalog
+        self.config = config if config is not None else MatcherConfig()
+        self._cat_log_size_sorted = np.sort(catalog.log_size)
+
+    def match(
+        self, local_xy: np.ndarray, local_size: np.ndarray | None = None, prior: MatchPrior | None = None
+    ) -> MatchResult | None:
+        """Pose of the local map (N, 2) metres, rock diameters (N,) metres, in the catalog's world
+        frame, or None when no pose is convincing. Raises :class:`MatchInputError` on bad input."""
+        cfg = self.config
+        xy, log_size = _validate(local_xy, local_size)
+        if xy.shape[0] < 3:
+            log.info("match: %d local rocks, need at least 3", xy.shape[0])
+            return None
+        tri = self._local_triangles(xy)
+        if len(tri) == 0:
+            log.info("match: no non-degenerate local triangle (collinear or duplicate rocks)")
+            return None
+        center = xy.mean(axis=0)
+        radius = float(np.max(np.hypot(*(xy - center).T))) + cfg.inlier_radius_m
+        order = np.random.default_rng(cfg.seed).permutation(len(tri))
+        st = _Search()
+        size_log_tol = None if cfg.size_ratio_max is None else math.log(cfg.size_ratio_max)
+        if size_log_tol is not None and log_size is not None:
+            st.size_check = (log_size, self.catalog.log_size, size_log_tol)
+            st.size_fraction = size_compatible_fraction(log_size, self._cat_log_size_sorted, size_log_tol)
+        # vote bins as wide as a 3-point pose's error: heading from ~1.5 m arms, position at the
+        # centroid up to the map radius away from the triangle
+        theta_bin = float(np.clip(2.5 * cfg.side_tol_m / cfg.side_tol_sigmas / 1.5, 0.05, 0.5))
+        xy_bin = max(0.5, 8.0 * cfg.sigma_m, theta_bin * (radius - cfg.inlier_radius_m))
+        start, size = 0, cfg.batch_triangles
+        while start < len(tri):
+            batch = tri.take(order[start : start + size])
+            start, size = start + size, min(2 * size, cfg.max_batch_triangles)
+            h = generate_hypotheses(
+                self.catalog, xy, log_size, batch,
+                side_tol_m=cfg.side_tol_m, scale_tol=cfg.scale_tol,
+                size_log_tol=size_log_tol,
+            )
+            if prior is not None and len(h):
+                h = _apply_prior(h, center, prior)
+            st.n_hypotheses += len(h)
+            if len(h):
+                st.keys.append(pose_bins(h, center, theta_bin, xy_bin))
+                st.hyps.append(h)
+                self._verify_top(xy, st)
+            if st.done:
+                break
+        if st.best is None:
+            return None
+        lfa, p = self._log10_fa(st, xy)
+        sim, inl = st.best
+        log.debug("match: best %d inliers, log10 FA %.1f, %d hypotheses", inl.count, lfa, st.n_hypotheses)
+        if lfa > cfg.max_log10_false_alarm or inl.count < cfg.min_inliers:
+            return None
+        cov4 = similarity_covariance(
+            sim,
+            xy[inl.local_idx],
+            self.catalog.xy[inl.catalog_idx],
+            floor_sigma_m=0.25 * cfg.sigma_m,
+            with_scale=not cfg.metric,
+        )
+        return MatchResult(
+            rotation_rad=float(sim.theta_rad),
+            translation=np.asarray(sim.translation, float),
+            scale=float(sim.scale),
+            inlier_pairs=np.stack([inl.local_idx, inl.catalog_idx], axis=1).astype(np.int64),
+            rmse_m=inl.rmse_m,
+            n_local=int(xy.shape[0]),
+            n_hypotheses=st.n_hypotheses,
+            n_verified=st.n_verified,
+            chance_probability=p,
+            log10_false_alarm=lfa,
+            similarity_cov=cov4,
+        )
+
+    # -- stages -------------------------------------------------------------------------------
+
+    def _local_triangles(self, xy: np.ndarray) -> LocalTriangles:
+        cc = self.catalog.config
+        tri = knn_triangles(xy, self.config.local_neighbours)
+        lab = label_triangles(xy, tri, min_side_m=cc.min_side_m, min_shape=cc.min_shape)
+        k = lab.keep
+        return LocalTriangles(lab.vertices[k].astype(np.int64), lab.sides_m[k], lab.handedness[k])
+
+    def _verify_top(self, xy: np.ndarray, st: _Search) -> None:
+        """Verify the most-voted bins not verified yet (two-stage scoring, see module doc)."""
+        cfg = self.config
+        keys = np.concatenate(st.keys)
+        hyp_all = _concat(st.hyps) if len(st.hyps) > 1 else st.hyps[0]
+        if len(st.hyps) > 1:
+            st.hyps[:] = [hyp_all]
+            st.keys[:] = [keys]
+        # sort by (bin, -span): the first hypothesis of each bin is its best-conditioned one
+        order = np.lexsort((-hyp_all.span_m, keys))
+        uniq, first, counts = np.unique(keys[order], return_index=True, return_counts=True)
+        cand = np.flatnonzero(~np.isin(uniq, st.verified))
+        if cand.size == 0:
+            return
+        # most votes first; ties by bin key (deterministic)
+        cand = cand[np.argsort(-counts[cand], kind="stable")][: cfg.verify_per_batch]
+        st.verified = np.concatenate([st.verified, uniq[cand]])
+        for b in cand:
+            i = int(order[first[b]])
+            sim = Similarity2D(float(hyp_all.theta_rad[i]), hyp_all.translation[i], float(hyp_all.scale[i]))
+            st.n_verified += 1
+            found = self._verify_one(xy, sim, xy[hyp_all.local_vertices[i]].mean(axis=0), st)
+            if found is None:
+                continue
+            sim, inl = found
+            if st.best is None or (inl.count, -inl.rmse_m) > (st.best[1].count, -st.best[1].rmse_m):
+                st.best = (sim, inl)
+                # early exit: an overwhelmingly supported pose ends the search at once
+                if self._log10_fa(st, xy)[0] <= cfg.early_exit_log10:
+                    st.done = True
+                    return
+
+    def _score(self, sim: Similarity2D, xy: np.ndarray, sel: np.ndarray | None, radius_m: float, st: _Search) -> Inliers:
+        """Inliers of local rocks ``sel`` (all when None) under ``sim``, indices into ``xy``."""
+        if sel is None:
+            return score_points(self.catalog.tree, sim.apply(xy), radius_m, st.size_check)
+        chk = None if st.size_check is None else (st.size_check[0][sel], st.size_check[1], st.size_check[2])
+        inl = score_points(self.catalog.tree, sim.apply(xy[sel]), radius_m, chk)
+        return Inliers(sel[inl.local_idx], inl.catalog_idx, inl.dist_m)
+
+    def _fit(self, xy: np.ndarray, inl: Inliers) -> Similarity2D:
+        return umeyama_2d(xy[inl.local_idx], self.catalog.xy[inl.catalog_idx], with_scale=not self.config.metric)
+
+    def _verify_one(
+        self, xy: np.ndarray, sim: Similarity2D, anchor_xy: np.ndarray, st: _Search
+    ) -> tuple[Similarity2D, Inliers] | None:
+        """Two-stage scoring of one hypothesis; returns the re-fitted pose and its inliers."""
+        cfg = self.config
+        r = cfg.inlier_radius_m
+        # guided growth: a 3-point pose is accurate near its triangle only, so first collect
+        # inliers close to it, re-fit, and widen the reach
+        reach = np.hypot(*(xy - anchor_xy).T)
+        for reach_m in cfg.growth_reach_m:
+            sel = np.flatnonzero(reach <= reach_m)
+            inl = self._score(sim, xy, sel, cfg.first_stage_factor * r, st)
+            if inl.count >= 3:
+                sim = self._fit(xy, inl)
+        # first stage with a wider radius: the pose is still noisier than the final one
+        inl = self._score(sim, xy, None, cfg.first_stage_factor * r, st)
+        if inl.count < max(3, cfg.min_inliers - 1):
+            return None
+        # second stage: least-squares re-fit on the inliers, re-score (repeated ``refits`` times)
+        # (the returned inliers are always scored at the final radius ``r``)
+        for _ in range(max(cfg.refits, 1)):
+            sim = self._fit(xy, inl)
+            inl = self._score(sim, xy, None, r, st)
+            if inl.count < 3:
+                return None
+        # polish on the closest pairs: a wrongly paired neighbour sits near the radius and
+        # drags the heading; the fit on pairs within ``polish_sigmas`` sigma is robust to it
+        close = inl.dist_m <= cfg.polish_sigmas * cfg.sigma_m
+        if np.count_nonzero(close) >= max(cfg.min_inliers, 3):
+            pol = self._fit(xy, Inliers(inl.local_idx[close], inl.catalog_idx[close], inl.dist_m[close]))
+            pol_inl = self._score(pol, xy, None, r, st)
+            if pol_inl.count >= 3:
+                sim, inl = pol, pol_inl
+        if abs(sim.scale - 1.0) > cfg.scale_tol + cfg.sigma_m / 2.0:
+            return None
+        return sim, inl
+
+    def _chance(self, sim: Similarity2D, xy: np.ndarray, inl: Inliers, st: _Search) -> float:
+        """Mean chance that a local rock, placed by ``sim``, lands on a size-compatible catalog rock.
+
+        The catalog density is measured around every transformed local rock (radius
+        ``density_radius_m``, the rock an inlier matched excluded), so clustered catalogs are not
+        credited with the sparse areas between clusters. Using the mean chance in a binomial
+        tail bounds the exact heterogeneous (Poisson-binomial) tail from above.
+        """
+        cfg = self.config
+        rd = max(cfg.density_radius_m, 4.0 * cfg.inlier_radius_m)
+        counts = self.catalog.tree.query_ball_point(sim.apply(xy), r=rd, return_length=True).astype(float)
+        counts[inl.local_idx] -= 1.0
+        rho = np.maximum(counts, 0.0) / (math.pi * rd * rd)
+        area = math.pi * cfg.inlier_radius_m**2
+        return float(np.mean(-np.expm1(-rho * st.size_fraction * area)))
+
+    def _log10_fa(self, st: _Search, xy: np.ndarray) -> tuple[float, float]:
+        """(log10 expected number of wrong poses as good as the best, chance probability)."""
+        sim, inl = st.best
+        p = self._chance(sim, xy, inl, st)
+        # the 3 rocks of the generating triangle are inliers by construction
+        tail = log10_binomial_tail(inl.count - 3, xy.shape[0] - 3, p)
+        return tail + math.log10(max(st.n_hypotheses, 1)), p
+
+
+def _validate(local_xy: np.ndarray, local_size: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    xy = np.asarray(local_xy, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise MatchInputError(f"local_xy must have shape (N, 2), got {xy.shape}")
+    if not np.all(np.isfinite(xy)):
+        raise MatchInputError("local_xy contains NaN or infinite values")
+    if local_size is None:
+        return xy, None
+    size = np.asarray(local_size, dtype=float)
+    if size.shape != (xy.shape[0],):
+        raise MatchInputError(f"local_size must have shape ({xy.shape[0]},), got {size.shape}")
+    if not np.all(np.isfinite(size)) or np.any(size <= 0):
+        raise MatchInputError("local_size must be finite and positive (rock diameters in metres)")
+    return xy, np.log(size).astype(np.float32)
+
+
+def _apply_prior(h: Hypotheses, center: np.ndarray, prior: MatchPrior) -> Hypotheses:
+    c, s = np.cos(h.theta_rad), np.sin(h.theta_rad)
+    cx = h.scale * (c * center[0] - s * center[1]) + h.translation[:, 0]
+    cy = h.scale * (s * center[0] + c * center[1]) + h.translation[:, 1]
+    pc = np.asarray(prior.center_xy, float)
+    ok = np.hypot(cx - pc[0], cy - pc[1]) <= prior.radius_m
+    return Hypotheses(
+        h.theta_rad[ok], h.scale[ok], h.translation[ok], h.local_vertices[ok], h.catalog_vertices[ok], h.span_m[ok]
+    )
+
+
+def _concat(hs: list[Hypotheses]) -> Hypotheses:
+    return Hypotheses(
+        np.concatenate([h.theta_rad for h in hs]),
+        np.concatenate([h.scale for h in hs]),
+        np.concatenate([h.translation for h in hs]),
+        np.concatenate([h.local_vertices for h in hs]),
+        np.concatenate([h.catalog_vertices for h in hs]),
+        np.concatenate([h.span_m for h in hs]),
+    )
+

@@ -1,0 +1,62 @@
+"""Triangle sampling with a KD-tree: a rock and every pair among its k nearest neighbours.
+
+The reference design samples (rock, NN1, NN2) only. When either map misses a rock (the published
+orbital detector finds 36 % of rocks) the two nearest neighbours differ between the maps, so the
+same physical triangle is rarely formed on both sides. Pairs from the k nearest neighbours keep
+most triangles present in both maps (measured while planning: 48 % with k=2, 79-81 % with k=4-5).
+Triangles found from several anchors are kept once.
+"""
+
+from __future__ import annotations
+
+from itertools import combinations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["knn_triangles"]
+
+
+def knn_triangles(
+    xy_m: np.ndarray, k: int, *, tree: cKDTree | None = None, chunk: int = 200_000, workers: int = 1
+) -> np.ndarray:
+    """Unique triangles (T, 3) int32 (vertex ids ascending) over points ``xy_m`` (N, 2): every
+    anchor with each pair of its ``k`` nearest neighbours. Rows are sorted by (v0, v1, v2).
+    ``workers``: threads for the KD-tree queries (-1: all cores)."""
+    n = int(xy_m.shape[0])
+    if n < 3:
+        return np.empty((0, 3), np.int32)
+    if n >= 2_097_152:  # n**3 would overflow the int64 triangle codes
+        raise ValueError(f"knn_triangles supports fewer than 2**21 points, got {n}")
+    k = int(min(k, n - 1))
+    if k < 2:
+        return np.empty((0, 3), np.int32)
+    tree = tree if tree is not None else cKDTree(xy_m)
+    pairs = np.array(list(combinations(range(1, k + 1), 2)), dtype=np.int64)  # columns of knn
+    codes = []
+    n64 = np.int64(n)
+    # anchors in the tree's leaf order: neighbouring queries touch the same nodes (cache locality)
+    leaf_order = tree.indices.astype(np.int64)
+    for start in range(0, n, chunk):
+        anchor = leaf_order[start : start + chunk]
+        _, nn = tree.query(xy_m[anchor], k=k + 1, workers=workers)
+        nn = nn.astype(np.int64)
+        # nn[:, 0] is normally the anchor itself, unless duplicates share a position
+        a = np.repeat(anchor, len(pairs))
+        b = nn[:, pairs[:, 0]].ravel()
+        c = nn[:, pairs[:, 1]].ravel()
+        # three-element sorting network (np.sort along a length-3 axis is far slower)
+        a, b = np.minimum(a, b), np.maximum(a, b)
+        b, c = np.minimum(b, c), np.maximum(b, c)
+        a, b = np.minimum(a, b), np.maximum(a, b)
+        ok = (a != b) & (b != c)
+        codes.append(((a * n64 + b) * n64 + c)[ok])
+    code = np.sort(np.concatenate(codes))
+    if code.size:  # unique via sort + diff (np.unique is several times slower here)
+        code = code[np.concatenate([[True], code[1:] != code[:-1]])]
+    out = np.empty((code.size, 3), np.int32)
+    out[:, 2] = code % n64
+    rest = code // n64
+    out[:, 1] = rest % n64
+    out[:, 0] = rest // n64
+    return out

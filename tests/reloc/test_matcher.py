@@ -1,0 +1,169 @@
+"""Seeded end-to-end matching on small synthetic catalogs; no-match answers; degenerate inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from reloc import Catalog, ConstellationMatcher, MatcherConfig, MatchResult
+from reloc.catalog import CatalogError
+from reloc.matcher import MatchInputError, MatchPrior
+
+DENSITY = 0.3
+
+
+def _field(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    side = np.sqrt(n / DENSITY)
+    return rng.uniform(0, side, (n, 2)), rng.lognormal(np.log(0.3), 0.5, n)
+
+
+def _query(xy, size, rng, sigma=0.05, n=40):
+    """A 40-rock disc, 30 % dropped, 4 spurious, jittered, moved: (local_xy, local_size, theta, t, kept ids)."""
+    side = np.ptp(xy[:, 0])
+    center = rng.uniform(8.0, side - 8.0, 2)
+    d = np.hypot(*(xy - center).T)
+    idx = np.argsort(d)[:n]
+    keep = idx[rng.random(n) >= 0.3]
+    r = d[idx].max()
+    ang, rr = rng.uniform(0, 2 * np.pi, 4), r * np.sqrt(rng.random(4))
+    world = np.vstack([xy[keep] + rng.normal(0, sigma, (keep.size, 2)), center + np.c_[rr * np.cos(ang), rr * np.sin(ang)]])
+    sizes = np.r_[size[keep] * np.exp(rng.normal(0, 0.15, keep.size)), rng.lognormal(np.log(0.3), 0.5, 4)]
+    theta = rng.uniform(-np.pi, np.pi)
+    t = center + rng.uniform(-30, 30, 2)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    return (world - t) @ rot, sizes, theta, t, keep
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    xy, size = _field(3000, 11)
+    return Catalog(xy, size)
+
+
+def _check(res: MatchResult, local, theta, t, pos_tol=0.3, head_tol_deg=2.0):
+    c = local.mean(axis=0)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    err = np.hypot(*(res.apply(c[None])[0] - (rot @ c + t)))
+    dth = abs((res.rotation_rad - theta + np.pi) % (2 * np.pi) - np.pi)
+    assert err < pos_tol and np.degrees(dth) < head_tol_deg, (err, np.degrees(dth))
+
+
+def test_recovers_seeded_queries(catalog):
+    rng = np.random.default_rng(7)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05, seed=3))
+    for _ in range(8):
+        local, size, theta, t, keep = _query(catalog.xy, catalog.size, rng)
+        res = matcher.match(local, size)
+        assert res is not None
+        _check(res, local, theta, t)
+        # inliers pair local rocks with the catalog rocks they came from
+        li, ci = res.inlier_pairs.T
+        real = li < keep.size
+        assert np.mean(keep[li[real]] == ci[real]) > 0.95
+        assert res.n_inliers >= 15 and res.rmse_m < 0.15
+        assert res.log10_false_alarm < -3 and abs(res.scale - 1.0) < 0.02
+        cov = res.transform_cov
+        assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
+        assert np.sqrt(cov[2, 2]) < np.radians(1.0)
+        # the covariance at the centroid: position sigma about sigma / sqrt(K)
+        cc = res.cov_at(local.mean(axis=0))
+        assert 0.2 * 0.05 / np.sqrt(res.n_inliers) < np.sqrt(cc[0, 0]) < 5 * 0.05 / np.sqrt(res.n_inliers)
+
+
+def test_recovers_noisier_queries(catalog):
+    rng = np.random.default_rng(8)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.2))
+    hits = 0
+    for _ in range(5):
+        local, size, theta, t, _ = _query(catalog.xy, catalog.size, rng, sigma=0.2)
+        res = matcher.match(local, size)
+        if res is not None:
+            _check(res, local, theta, t, pos_tol=0.5, head_tol_deg=3.0)  # never a wrong fix
+            hits += 1
+    assert hits >= 4
+
+
+def test_out_of_catalog_queries_get_no_match(catalog):
+    other_xy, other_size = _field(3000, 99)
+    rng = np.random.default_rng(9)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05))
+    for _ in range(8):
+        local, size, *_ = _query(other_xy, other_size, rng)
+        assert matcher.match(local, size) is None
+
+
+def test_mirrored_map_is_not_matched(catalog):
+    rng = np.random.default_rng(10)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05))
+    for _ in range(3):
+        local, size, *_ = _query(catalog.xy, catalog.size, rng)
+        assert matcher.match(local * np.array([-1.0, 1.0]), size) is None
+
+
+def test_deterministic_for_a_seed(catalog):
+    rng = np.random.default_rng(12)
+    local, size, *_ = _query(catalog.xy, catalog.size, rng)
+    cfg = MatcherConfig(sigma_m=0.05, seed=5)
+    a = ConstellationMatcher(catalog, cfg).match(local, size)
+    b = ConstellationMatcher(catalog, cfg).match(local, size)
+    assert a is not None and b is not None
+    assert a.rotation_rad == b.rotation_rad and np.array_equal(a.translation, b.translation)
+    assert np.array_equal(a.inlier_pairs, b.inlier_pairs) and a.n_hypotheses == b.n_hypotheses
+
+
+def test_prior_restricts_the_search(catalog):
+    rng = np.random.default_rng(13)
+    local, size, theta, t, _ = _query(catalog.xy, catalog.size, rng)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    center_w = rot @ local.mean(axis=0) + t
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05))
+    near = matcher.match(local, size, prior=MatchPrior(center_w + 1.0, 3.0))
+    assert near is not None
+    _check(near, local, theta, t)
+    assert matcher.match(local, size, prior=MatchPrior(center_w + 40.0, 3.0)) is None
+
+
+def test_works_without_sizes(catalog):
+    rng = np.random.default_rng(14)
+    local, _, theta, t, _ = _query(catalog.xy, catalog.size, rng)
+    res = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05)).match(local, None)
+    assert res is not None
+    _check(res, local, theta, t)
+
+
+def test_degenerate_local_maps_get_none_or_a_clear_error(catalog):
+    m = ConstellationMatcher(catalog)
+    assert m.match(np.zeros((0, 2)), np.zeros(0)) is None
+    assert m.match(np.array([[0.0, 0.0], [1.0, 1.0]]), np.ones(2)) is None
+    line = np.c_[np.linspace(0, 10, 20), np.linspace(0, 5, 20)]
+    assert m.match(line, np.full(20, 0.3)) is None  # all collinear
+    assert m.match(np.ones((10, 2)), np.full(10, 0.3)) is None  # all duplicates
+    with pytest.raises(MatchInputError, match="NaN"):
+        m.match(np.array([[0.0, 0.0], [np.nan, 1.0], [2.0, 0.0]]), np.ones(3))
+    with pytest.raises(MatchInputError, match="shape"):
+        m.match(np.zeros((5, 3)), np.ones(5))
+    with pytest.raises(MatchInputError, match="local_size"):
+        m.match(np.zeros((5, 2)), np.ones(4))
+    with pytest.raises(MatchInputError, match="positive"):
+        m.match(np.random.default_rng(0).uniform(0, 5, (5, 2)), -np.ones(5))
+
+
+def test_bad_catalogs_raise():
+    with pytest.raises(CatalogError, match="at least 3"):
+        Catalog(np.zeros((2, 2)), np.ones(2))
+    with pytest.raises(CatalogError, match="NaN"):
+        Catalog(np.array([[0.0, 0.0], [1.0, np.nan], [2.0, 0.0]]), np.ones(3))
+    with pytest.raises(CatalogError, match="positive"):
+        Catalog(np.random.default_rng(0).uniform(0, 5, (5, 2)), np.zeros(5))
+    with pytest.raises(MatchInputError):
+        MatcherConfig(sigma_m=-1.0)
+
+
+def test_catalog_index_is_compact(catalog):
+    assert catalog.tri_vertices.dtype == np.int32 and catalog.tri_sides_m.dtype == np.float32
+    assert catalog.n_triangles > 5 * len(catalog)
+    assert catalog.nbytes < 64 * catalog.n_triangles
+    assert dataclasses.is_dataclass(catalog.config)

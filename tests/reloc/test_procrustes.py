@@ -1,0 +1,107 @@
+"""Procrustes (Umeyama) similarity fits, the binomial acceptance statistic and one-to-one inliers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+from scipy.stats import binom
+
+from reloc.match_result import similarity_covariance
+from reloc.procrustes import Similarity2D, rotation_2d, similarity_batch, umeyama_2d
+from reloc.scoring import chance_probability, log10_binomial_tail, score_points
+
+
+@settings(max_examples=120, deadline=None)
+@given(
+    theta=st.floats(-np.pi, np.pi),
+    scale=st.floats(0.3, 3.0),
+    tx=st.floats(-1e4, 1e4),
+    ty=st.floats(-1e4, 1e4),
+    seed=st.integers(0, 2**31 - 1),
+    k=st.integers(3, 40),
+)
+def test_umeyama_recovers_random_similarities(theta, scale, tx, ty, seed, k):
+    src = np.random.default_rng(seed).uniform(-10.0, 10.0, (k, 2))
+    if np.linalg.matrix_rank(src - src.mean(axis=0), tol=1e-3) < 2:
+        return
+    truth = Similarity2D(theta, np.array([tx, ty]), scale)
+    dst = truth.apply(src)
+    est = umeyama_2d(src, dst)
+    dth = (est.theta_rad - theta + np.pi) % (2 * np.pi) - np.pi
+    assert abs(dth) < 1e-7
+    assert est.scale == pytest.approx(scale, rel=1e-7)
+    np.testing.assert_allclose(est.translation, [tx, ty], atol=1e-6 * (1 + abs(tx) + abs(ty)))
+    assert np.linalg.det(est.rotation) == pytest.approx(1.0)
+    # the batched closed form agrees
+    th_b, s_b, t_b = similarity_batch(src[None], dst[None])
+    assert abs((th_b[0] - theta + np.pi) % (2 * np.pi) - np.pi) < 1e-7
+    assert s_b[0] == pytest.approx(scale, rel=1e-7)
+    np.testing.assert_allclose(t_b[0], [tx, ty], atol=1e-6 * (1 + abs(tx) + abs(ty)))
+
+
+def test_mirror_images_get_no_reflection():
+    rng = np.random.default_rng(1)
+    src = rng.uniform(-5, 5, (12, 2))
+    dst = src * np.array([-1.0, 1.0])  # a reflection: no proper rotation maps src onto it
+    est = umeyama_2d(src, dst)
+    assert np.linalg.det(est.rotation) == pytest.approx(1.0)
+    assert np.sqrt(np.mean(np.sum((est.apply(src) - dst) ** 2, axis=1))) > 1.0
+
+
+def test_rigid_fit_keeps_unit_scale():
+    rng = np.random.default_rng(2)
+    src = rng.uniform(-5, 5, (10, 2))
+    dst = Similarity2D(0.3, np.array([1.0, 2.0]), 1.0).apply(src) + rng.normal(0, 0.01, (10, 2))
+    est = umeyama_2d(src, dst, with_scale=False)
+    assert est.scale == 1.0
+    assert est.theta_rad == pytest.approx(0.3, abs=0.01)
+
+
+def test_similarity_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(4)
+    src = rng.uniform(-6, 6, (25, 2))
+    truth = Similarity2D(0.7, np.array([100.0, -50.0]), 1.0)
+    sigma = 0.1
+    est = []
+    covs = []
+    for _ in range(400):
+        dst = truth.apply(src) + rng.normal(0, sigma, src.shape)
+        e = umeyama_2d(src, dst, with_scale=False)
+        est.append([*e.translation, e.theta_rad])
+        covs.append(similarity_covariance(e, src, dst, with_scale=False)[:3, :3])
+    emp = np.cov(np.array(est).T)
+    pred = np.mean(covs, axis=0)
+    np.testing.assert_allclose(np.sqrt(np.diag(pred)), np.sqrt(np.diag(emp)), rtol=0.15)
+
+
+def test_binomial_tail_matches_scipy():
+    for n, p, k in [(37, 0.2, 20), (80, 0.05, 3), (40, 0.01, 25), (10, 0.5, 0), (10, 0.5, 11)]:
+        ref = binom.sf(k - 1, n, p)
+        got = log10_binomial_tail(k, n, p)
+        if ref == 0:
+            assert got == -math.inf or got < -300
+        else:
+            assert got == pytest.approx(math.log10(ref), abs=1e-6)
+
+
+def test_chance_probability_of_a_poisson_field():
+    rng = np.random.default_rng(5)
+    field = rng.uniform(0, 200, (12000, 2))  # 0.3 rocks / m^2
+    tree = cKDTree(field)
+    probe = rng.uniform(20, 180, (20000, 2))
+    hit = np.mean(tree.query(probe, distance_upper_bound=0.5)[0] <= 0.5)
+    assert hit == pytest.approx(chance_probability(0.3, 0.5), abs=0.01)
+
+
+def test_inliers_are_one_to_one():
+    cat = np.array([[0.0, 0.0], [10.0, 0.0]])
+    pts = np.array([[0.05, 0.0], [0.02, 0.0], [10.3, 0.0], [5.0, 5.0]])
+    inl = score_points(cKDTree(cat), pts, 0.2)
+    assert inl.local_idx.tolist() == [1]  # the closer of two claims on rock 0; rock 1 too far
+    assert inl.catalog_idx.tolist() == [0]
+    assert rotation_2d(0.0).tolist() == [[1.0, 0.0], [0.0, 1.0]]
