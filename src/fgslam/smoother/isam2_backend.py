@@ -231,9 +231,10 @@ class Isam2Smoother:
         )
 
     # ------------------------------------------------------------------ internals
-    def _timed_update(self, graph, values, stamps=None, remove=None) -> list[int]:
+    def _timed_update(self, graph, values, stamps=None, remove=None, keep_latest_root=False) -> list[int]:
         self._solver_touched = True
-        return self.solver.update(graph, values, stamps, remove)
+        last = X(len(self.kfs) - 1) if keep_latest_root else None
+        return self.solver.update(graph, values, stamps, remove, last_key=last)
 
     def _add_keyframe(self) -> None:
         """New keyframe X(k) at the accumulator's time: odometry, gravity and buffered rock factors."""
@@ -317,6 +318,7 @@ class Isam2Smoother:
         self.cov_kf = self.solver.marginal_cov(X(k))
         if len(self.kfs.online_T) <= k:
             self.kfs.record_online(self.T_kf, cov_gtsam_to_world(self.T_kf[:3, :3], self.cov_kf))
+        self.landmarks.set_view_cache(self.T_kf[:3, 3])
         for rec in self.landmarks.in_view(self.T_kf[:3, :3], self.T_kf[:3, 3]):
             if rec.status == ACTIVE and self.solver.alive(L(rec.lid)):
                 rec.xyz_world_m = self.solver.point(L(rec.lid))
@@ -338,7 +340,11 @@ class Isam2Smoother:
         T_rel, C_rel = seg.at(fix.t_meas)
         T_kf = self.solver.pose(X(k))
         factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k)
-        d2, dist = innovation_d2(fix, T_kf, self.solver.marginal_cov(X(k)), T_rel, cov_res)
+        if cfg.gate_smoothed_marginal:
+            cov_kf = self.solver.marginal_cov(X(k))
+        else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
+            cov_kf = cov_world_to_gtsam(T_kf[:3, :3], self.kfs.online_cov[k])
+        d2, dist = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res)
         if dist > cfg.gate_distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
         if d2 > cfg.gate_chi2:
@@ -348,9 +354,9 @@ class Isam2Smoother:
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
         try:
-            idx = self._timed_update(graph, gtsam.Values())
-            self.solver.extra_iterations(cfg.extra_iterations)
-        except (SolverUpdateError, RuntimeError) as exc:
+            idx = self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
+            self.solver.extra_iterations(cfg.extra_iterations, last_key=X(len(self.kfs) - 1))
+        except (SolverUpdateError, RuntimeError, ValueError) as exc:
             self.solver.restore(snap, alive)
             self.n_failed_updates += 1
             return FixOutcome(fix, False, f"solver update failed: {exc}", d2)
@@ -375,9 +381,9 @@ class Isam2Smoother:
                 return
             rec = live[worst]
             try:
-                self._timed_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), remove=[rec.factor_index])
-                self.solver.extra_iterations(cfg.extra_iterations)
-            except (SolverUpdateError, RuntimeError) as exc:
+                self._timed_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), remove=[rec.factor_index], keep_latest_root=True)
+                self.solver.extra_iterations(cfg.extra_iterations, last_key=X(len(self.kfs) - 1))
+            except (SolverUpdateError, RuntimeError, ValueError) as exc:
                 log.warning("could not retract fix at t=%.2f: %s", rec.fix.t_meas, exc)
                 return
             self._remap_indices()

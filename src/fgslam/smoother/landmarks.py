@@ -21,6 +21,7 @@ from reloc.association import associate
 from reloc.landmark_model import point_in_base, point_to_world
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
+_VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
 
 
 @dataclass
@@ -59,6 +60,9 @@ class LandmarkStore:
         self.live: dict[int, LandmarkRecord] = {}  # candidates and graph landmarks (not retired)
         self._retired: list[int] = []
         self.next_id = 0
+        # live records near the last keyframe, in creation order (see set_view_cache)
+        self._view: list[LandmarkRecord] | None = None
+        self._view_center = np.zeros(3)
 
     def nearby(self, p_world: np.ndarray) -> list[LandmarkRecord]:
         """Candidates and graph landmarks within the association range of ``p_world`` (3,)."""
@@ -69,9 +73,25 @@ class LandmarkStore:
         near = np.linalg.norm(xyz[:, :2] - p_world[:2], axis=1) <= self.cfg.association.max_range_m + 2.0
         return [out[i] for i in np.flatnonzero(near)]
 
+    def set_view_cache(self, p_world: np.ndarray) -> None:
+        """Keep the live landmarks within ``max_range + 1.5 + 2 * _VIEW_SLACK_M`` of ``p_world``
+        (3,): :meth:`in_view` from any pose within ``_VIEW_SLACK_M`` of it then filters this short
+        list instead of every landmark (same result; the other slack covers landmarks moving)."""
+        self._view = None
+        recs = list(self.live.values())
+        if recs:
+            d = np.linalg.norm(np.array([r.xyz_world_m for r in recs]) - p_world, axis=1)
+            keep = d <= self.cfg.association.max_range_m + 1.5 + 2.0 * _VIEW_SLACK_M
+            recs = [recs[i] for i in np.flatnonzero(keep)]
+        self._view = recs
+        self._view_center = np.array(p_world, dtype=float)
+
     def in_view(self, R_world_base: np.ndarray, p_world: np.ndarray) -> list[LandmarkRecord]:
         """Live landmarks that can be associated from this pose: in range and not behind."""
-        out = list(self.live.values())
+        if self._view is not None and np.linalg.norm(p_world - self._view_center) <= _VIEW_SLACK_M:
+            out = list(self._view)
+        else:
+            out = list(self.live.values())
         if not out:
             return out
         z = point_in_base(R_world_base, p_world, np.array([r.xyz_world_m for r in out]))
@@ -118,11 +138,14 @@ class LandmarkStore:
         observed: list[tuple[int, np.ndarray, np.ndarray]] = []
         to_insert: list[LandmarkRecord] = []
         l_new, c_new = point_to_world(R, p, z_base, R_z)
+        matched = np.flatnonzero(a.landmark_of >= 0)
+        if matched.size:
+            self._fuse_batch([cands[int(a.landmark_of[i])] for i in matched], l_new[matched], c_new[matched],
+                             size_m[matched], t)
         for i in range(z_base.shape[0]):
             j = int(a.landmark_of[i])
             if j >= 0:
                 rec = cands[j]
-                self._fuse(rec, l_new[i], c_new[i], float(size_m[i]), t)
                 if rec.status == ACTIVE:
                     observed.append((rec.lid, z_kf[i], R_kf[i]))
                 else:
@@ -135,10 +158,34 @@ class LandmarkStore:
                 rec.pending.append((kf, z_kf[i], R_kf[i]))
                 self.records[rec.lid] = rec
                 self.live[rec.lid] = rec
+                if self._view is not None:
+                    self._view.append(rec)
                 self.next_id += 1
         n_assoc = int((a.landmark_of >= 0).sum())
         n_new = int(a.is_new.sum())
         return FrameAssociation(observed, to_insert, n_assoc, n_new, n_rejected + a.n_ambiguous + a.n_out_of_range)
+
+    @classmethod
+    def _fuse_batch(cls, recs: list[LandmarkRecord], l: np.ndarray, C: np.ndarray, size: np.ndarray,
+                    t: float) -> None:
+        """:meth:`_fuse` of K detections (K, 3) / (K, 3, 3) into K records, one batched inverse."""
+        if len({id(r) for r in recs}) < len(recs):  # one rock matched twice: fuse in order
+            for rec, li, Ci, si in zip(recs, l, C, size):
+                cls._fuse(rec, li, Ci, float(si), t)
+            return
+        x_old = np.array([r.xyz_world_m for r in recs])
+        info = np.linalg.inv(np.concatenate([np.array([r.cov_world_m2 for r in recs]), C]))
+        info_old, info_new = info[: len(recs)], info[len(recs):]
+        cov = np.linalg.inv(info_old + info_new)
+        x = np.einsum("kij,kj->ki", cov, np.einsum("kij,kj->ki", info_old, x_old) + np.einsum("kij,kj->ki", info_new, l))
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        for k, rec in enumerate(recs):
+            if rec.status != ACTIVE:  # graph landmarks take their position from the solver
+                rec.xyz_world_m = x[k]
+            rec.cov_world_m2 = cov[k]
+            rec.size_sum_m += float(size[k])
+            rec.n_obs += 1
+            rec.t_last = t
 
     @staticmethod
     def _fuse(rec: LandmarkRecord, l: np.ndarray, C: np.ndarray, size: float, t: float) -> None:
@@ -164,6 +211,7 @@ class LandmarkStore:
         """Freeze a landmark that left the fixed-lag window; the oldest retired ones are dropped."""
         self.records[lid].status = RETIRED
         self.live.pop(lid, None)
+        self._view = None
         self._retired.append(lid)
         while len(self._retired) > self.cfg.max_retired:
             self.records.pop(self._retired.pop(0), None)
@@ -172,6 +220,7 @@ class LandmarkStore:
         """Forget a landmark entirely (a candidate that timed out, or one whose update failed)."""
         self.records.pop(lid, None)
         self.live.pop(lid, None)
+        self._view = None
 
     def mapped(self) -> list[LandmarkRecord]:
         """Landmarks of the map (in the graph, or retired from it), in id order."""
