@@ -1,0 +1,172 @@
+"""Dead reckoning as a :class:`reloc.backend.Backend`: the odometry-only curve of the plots.
+
+Position integrates the commanded speed along the IMU attitude; the covariance grows with a
+simple speed-proportional model (same convention as reloc.backend). Rock frames are turned into a
+world-frame landmark map by nearest-neighbour association, so the relocalizer can be exercised
+without a SLAM back-end. Fixes are ignored unless ``use_fixes``; when used, the planar correction
+that moves the pose at ``t_meas`` onto the fix is applied to the current pose and the map.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import numpy as np
+
+from reloc.backend import (
+    BackendStats,
+    FixOutcome,
+    LandmarkMap,
+    LandmarkUpdateReport,
+    PoseEstimate,
+    Trajectory,
+)
+from reloc.measurements import GlobalFix, RockObservations
+from reloc.odometry import OdometryStep
+
+
+@dataclass(frozen=True)
+class DeadReckoningConfig:
+    """Noise model and map-building parameters (defaults in code)."""
+
+    sigma_speed_frac: float = 0.03  # 1-sigma relative speed error (slip), per unit distance
+    sigma_lateral_frac: float = 0.01  # 1-sigma lateral drift per metre travelled
+    sigma_yaw_rate_radps: float = 0.002  # 1-sigma random-walk density of heading, rad/sqrt(s)
+    sigma_z_frac: float = 0.02
+    association_gate_m: float = 0.6  # nearest landmark within this distance is the same rock
+    use_fixes: bool = False
+    build_map: bool = True  # False: ignore rock frames (the odometry-only curve needs no map)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+class DeadReckoning:
+    """Odometry-only back-end (see module doc); ``name`` is "dr"."""
+
+    name = "dr"
+
+    def __init__(self, initial: PoseEstimate, config: DeadReckoningConfig | None = None) -> None:
+        self.config = config or DeadReckoningConfig()
+        self._T = np.array(initial.T_world_base, dtype=float)
+        self._P = np.array(initial.cov, dtype=float)
+        self._t = float(initial.t)
+        self._hist_t: list[float] = [self._t]
+        self._hist_T: list[np.ndarray] = [self._T.copy()]
+        self._hist_P: list[np.ndarray] = [self._P.copy()]
+        self._lm_xyz = np.zeros((0, 3))
+        self._lm_cov = np.zeros((0, 3, 3))
+        self._lm_size = np.zeros(0)
+        self._lm_n = np.zeros(0, dtype=int)
+        self._stats = {"n_predict": 0, "n_landmark_frames": 0, "n_fixes_accepted": 0, "n_fixes_rejected": 0}
+
+    def predict(self, step: OdometryStep) -> None:
+        """Integrate one odometry step: attitude by the IMU increment, position by v*dt along x."""
+        c = self.config
+        R0 = self._T[:3, :3]
+        R1 = R0 @ step.dR_base
+        ds = step.v_mps * step.dt
+        dp = 0.5 * (R0 + R1) @ np.array([ds, 0.0, 0.0])
+        F = np.eye(6)
+        F[:3, 3:] = -_skew(dp)
+        Q_body = np.diag([(c.sigma_speed_frac * ds) ** 2, (c.sigma_lateral_frac * abs(ds)) ** 2, (c.sigma_z_frac * abs(ds)) ** 2])
+        Q = np.zeros((6, 6))
+        Q[:3, :3] = R1 @ Q_body @ R1.T
+        Q[5, 5] = c.sigma_yaw_rate_radps**2 * step.dt
+        Q[3, 3] = Q[4, 4] = 1e-8 * step.dt
+        self._P = F @ self._P @ F.T + Q
+        self._T[:3, :3] = R1
+        self._T[:3, 3] += dp
+        self._t = step.t1
+        self._hist_t.append(self._t)
+        self._hist_T.append(self._T.copy())
+        self._hist_P.append(self._P.copy())
+        self._stats["n_predict"] += 1
+
+    def update_landmarks(self, obs: RockObservations) -> LandmarkUpdateReport:
+        """Add the frame's rocks to the world map at the dead-reckoned pose (no pose correction)."""
+        self._stats["n_landmark_frames"] += 1
+        n = len(obs)
+        if n == 0 or not self.config.build_map:
+            return LandmarkUpdateReport(obs.t, 0, 0, 0, 0)
+        R, p = self._T[:3, :3], self._T[:3, 3]
+        xyz_w = obs.xyz_base_m @ R.T + p
+        cov_w = R @ obs.cov_base_m2 @ R.T
+        n_assoc = n_new = 0
+        for k in range(n):
+            if len(self._lm_xyz):
+                d = np.linalg.norm(self._lm_xyz[:, :2] - xyz_w[k, :2], axis=1)
+                j = int(np.argmin(d))
+                if d[j] < self.config.association_gate_m:
+                    # information-weighted fusion of the new sighting into landmark j
+                    Pj_inv = np.linalg.inv(self._lm_cov[j])
+                    Pk_inv = np.linalg.inv(cov_w[k])
+                    P_new = np.linalg.inv(Pj_inv + Pk_inv)
+                    self._lm_xyz[j] = P_new @ (Pj_inv @ self._lm_xyz[j] + Pk_inv @ xyz_w[k])
+                    self._lm_cov[j] = 0.5 * (P_new + P_new.T)
+                    m = self._lm_n[j]
+                    self._lm_size[j] = (m * self._lm_size[j] + obs.size_m[k]) / (m + 1)
+                    self._lm_n[j] += 1
+                    n_assoc += 1
+                    continue
+            self._lm_xyz = np.vstack([self._lm_xyz, xyz_w[k]])
+            self._lm_cov = np.concatenate([self._lm_cov, cov_w[k][None]])
+            self._lm_size = np.append(self._lm_size, obs.size_m[k])
+            self._lm_n = np.append(self._lm_n, 1)
+            n_new += 1
+        return LandmarkUpdateReport(obs.t, n, n_assoc, n_new, 0)
+
+    def _pose_at(self, t: float) -> tuple[int, np.ndarray]:
+        i = bisect.bisect_right(self._hist_t, t) - 1
+        return max(i, 0), self._hist_T[max(i, 0)]
+
+    def apply_fix(self, fix: GlobalFix) -> FixOutcome:
+        """Ignored unless ``use_fixes``; then shift the current pose and map by the planar correction."""
+        if not self.config.use_fixes:
+            self._stats["n_fixes_rejected"] += 1
+            return FixOutcome(fix, accepted=False, reason="dead reckoning ignores fixes")
+        if fix.t_meas < self._hist_t[0]:
+            self._stats["n_fixes_rejected"] += 1
+            return FixOutcome(fix, accepted=False, reason="older than history")
+        _, T_old = self._pose_at(fix.t_meas)
+        yaw_old = float(np.arctan2(T_old[1, 0], T_old[0, 0]))
+        dyaw = fix.yaw_rad - yaw_old
+        c, s = np.cos(dyaw), np.sin(dyaw)
+        R2 = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        t2 = np.array([fix.x_m, fix.y_m, 0.0]) - R2 @ np.array([T_old[0, 3], T_old[1, 3], 0.0])
+        self._T[:3, :3] = R2 @ self._T[:3, :3]
+        self._T[:2, 3] = (R2 @ self._T[:3, 3] + t2)[:2]
+        if len(self._lm_xyz):
+            self._lm_xyz[:, :2] = (self._lm_xyz @ R2.T + t2)[:, :2]
+        idx = [0, 1, 5]
+        for a in range(3):
+            for b in range(3):
+                self._P[idx[a], idx[b]] = fix.cov_xyyaw[a, b]
+        for a in idx:
+            for b in (2, 3, 4):
+                self._P[a, b] = self._P[b, a] = 0.0
+        self._stats["n_fixes_accepted"] += 1
+        return FixOutcome(fix, accepted=True)
+
+    def estimate(self) -> PoseEstimate:
+        """Latest dead-reckoned pose with its covariance."""
+        return PoseEstimate(self._t, self._T.copy(), self._P.copy())
+
+    def landmark_map(self) -> LandmarkMap:
+        """Map built at the dead-reckoned poses, in the world frame."""
+        return LandmarkMap(
+            ids=np.arange(len(self._lm_xyz)),
+            xyz_world_m=self._lm_xyz.copy(),
+            cov_world_m2=self._lm_cov.copy(),
+            size_m=self._lm_size.copy(),
+            n_obs=self._lm_n.copy(),
+        )
+
+    def trajectory(self) -> Trajectory:
+        """Every integrated pose (t (K,), T (K,4,4), cov (K,6,6))."""
+        return Trajectory(np.array(self._hist_t), np.array(self._hist_T), np.array(self._hist_P))
+
+    def stats(self) -> BackendStats:
+        return BackendStats(n_landmarks=len(self._lm_xyz), **self._stats)

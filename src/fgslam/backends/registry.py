@@ -1,0 +1,86 @@
+"""Back-end constructors by name: "ekf" (ekf.EkfSlam), "isam2" (fgslam.smoother.Isam2Smoother), "dr".
+
+Each constructor takes the initial :class:`reloc.backend.PoseEstimate` and an optional config
+mapping (overrides of the back-end's frozen config dataclass, see reloc.config).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Any
+
+from fgslam.errors import FgslamError
+from reloc.backend import Backend, PoseEstimate
+from reloc.config import config_from_dict
+
+# name -> (module, class); the config class is read from the constructor's annotation
+_SPECS: dict[str, tuple[str, str]] = {
+    "ekf": ("ekf", "EkfSlam"),
+    "isam2": ("fgslam.smoother", "Isam2Smoother"),
+    "dr": ("fgslam.backends.dead_reckoning", "DeadReckoning"),
+}
+BACKEND_NAMES = tuple(_SPECS)
+
+
+class BackendUnavailableError(FgslamError):
+    """The named back-end is unknown or its package is not importable."""
+
+
+def backend_class(name: str) -> type:
+    """The class implementing back-end ``name`` (ImportError becomes BackendUnavailableError)."""
+    if name not in _SPECS:
+        raise BackendUnavailableError(f"unknown back-end {name!r}; choose from {list(_SPECS)}")
+    module, cls = _SPECS[name]
+    try:
+        return getattr(importlib.import_module(module), cls)
+    except (ImportError, AttributeError) as exc:
+        raise BackendUnavailableError(f"back-end {name!r} ({module}.{cls}) is not available: {exc}") from exc
+
+
+def available_backends() -> list[str]:
+    """Names of the back-ends that import."""
+    out = []
+    for name in _SPECS:
+        try:
+            backend_class(name)
+            out.append(name)
+        except BackendUnavailableError:
+            pass
+    return out
+
+
+def _config_class(cls: type) -> type | None:
+    import inspect
+
+    try:
+        hint = inspect.signature(cls.__init__).parameters.get("config")
+    except (TypeError, ValueError):
+        return None
+    if hint is None:
+        return None
+    ann = hint.annotation
+    if isinstance(ann, str):
+        mod = importlib.import_module(cls.__module__)
+        name = ann.split("|")[0].strip()
+        ann = getattr(mod, name, None)
+    return ann if dataclasses.is_dataclass(ann) else None
+
+
+def make_backend(name: str, initial: PoseEstimate, overrides: dict | None = None) -> Backend:
+    """Construct back-end ``name`` at ``initial`` with config ``overrides`` applied to its defaults."""
+    cls = backend_class(name)
+    cfg_cls = _config_class(cls)
+    config: Any = config_from_dict(cfg_cls, overrides, where=f"{name}.") if cfg_cls else None
+    if overrides and cfg_cls is None:
+        raise BackendUnavailableError(f"back-end {name!r} takes no config overrides, got {sorted(overrides)}")
+    return cls(initial, config)
+
+
+def backend_config_dict(backend: Backend) -> dict:
+    """The resolved config of a constructed back-end, as a plain dict (empty when unknown)."""
+    from reloc.config import config_to_dict
+
+    cfg = getattr(backend, "config", None)
+    return config_to_dict(cfg) if dataclasses.is_dataclass(cfg) else {}
+

@@ -1,0 +1,161 @@
+"""Side-by-side comparison: EKF and iSAM2, each with and without relocalization, on the same inputs.
+
+Fairness: the fix list is computed once, in a reference pass (``reference_backend`` with online
+relocalization on its own map), and the very same fixes (same ``t_meas``, ``t_recv``, values and
+covariances) are replayed to every back-end; the reference back-end's own "with relocalization"
+run is that reference pass (a replay would be identical). A dead-reckoning pass gives the
+odometry-only curve.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fgslam import metrics as M
+from fgslam.errors import FgslamError
+from fgslam.inputs import RunInputs, truth_of
+from fgslam.passes import Pass, run_passes
+from fgslam.relocalizer import FixAttempt, Relocalizer, RelocalizerConfig
+from fgslam.runner import RunnerConfig, RunResult
+from reloc.backend import Trajectory
+
+log = logging.getLogger(__name__)
+
+DR_KEY = "dead_reckoning"  # the odometry-only pass, always run (not a compared variant)
+LABELS = {"ekf": "EKF", "isam2": "iSAM2", "dr": "Dead reckoning"}
+
+
+class CompareError(FgslamError):
+    """A comparison cannot be made (no back-end, no ground truth for metrics)."""
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    """Which back-ends, the reference pass for the shared fixes, and the stage configs."""
+
+    backends: tuple[str, ...] = ("ekf", "isam2")
+    reference_backend: str = "isam2"
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+    relocalizer: RelocalizerConfig = field(default_factory=RelocalizerConfig)
+    backend_overrides: dict = field(default_factory=dict)  # name -> config overrides
+    rpe_delta_m: float = 10.0
+    workers: int = 2  # back-end passes run on this many forked processes (1: in this process)
+
+
+def run_key(backend: str, reloc: bool) -> str:
+    """Entity-safe key of a variant: "ekf", "ekf_reloc", "isam2", "isam2_reloc"."""
+    return f"{backend}_reloc" if reloc else backend
+
+
+def run_label(key: str) -> str:
+    """Human label of a variant key ("iSAM2 + reloc")."""
+    name, _, rel = key.partition("_")
+    return LABELS.get(name, name) + (" + reloc" if rel else "")
+
+
+def fixes_of(attempts: list[FixAttempt]):
+    """The fixes produced by a list of attempts, in time order."""
+    return [a.fix for a in attempts if a.fix is not None]
+
+
+def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt], rpe_delta_m: float) -> dict:
+    """All metrics of one run as a JSON-ready dict (accuracy only with ground truth)."""
+    out: dict = {
+        "backend": res.backend,
+        "runtime": {
+            "wall_s": res.wall_s, "backend_s": res.backend_s, "match_s": res.match_s,
+            "duration_s": res.duration_s, "real_time_factor": M.real_time_factor(res.duration_s, res.wall_s),
+        },
+        "n_landmarks": len(res.landmarks),
+    }
+    fixes = res.fixes_sent
+    accepted_t = {(o.fix.t_meas, o.fix.t_recv) for o in res.outcomes if o.accepted}
+    acc = np.array([(f.t_meas, f.t_recv) in accepted_t for f in fixes], dtype=bool)
+    out["fixes"] = M.fix_stats(
+        len(attempts), np.array([f.xyyaw for f in fixes]).reshape(-1, 3),
+        np.array([f.t_meas for f in fixes]), np.array([f.t_recv for f in fixes]), acc, gt, res.duration_s,
+        cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
+    ).to_dict()
+    out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
+    if gt is None:
+        return out
+    out["ate"] = M.ate(res.final, gt).to_dict()
+    out["ate_se2_aligned"] = M.ate(res.final, gt, align_se2=True).to_dict()
+    out["ate_online"] = M.ate(res.online, gt).to_dict()
+    out["rpe"] = M.rpe_per_distance(res.final, gt, rpe_delta_m).to_dict()
+    cons, _ = M.consistency(res.online, gt)
+    out["consistency"] = cons.to_dict()
+    if res.final.cov is not None and len(res.final):
+        out["consistency_final"] = M.consistency(res.final, gt)[0].to_dict()
+    return out
+
+
+@dataclass
+class WorldComparison:
+    """The comparison on one input: runs by key (see :func:`run_key`), the dead-reckoning run,
+    the reference attempts (shared fixes), ground truth, metrics and total wall time."""
+
+    inputs: RunInputs
+    gt: Trajectory | None
+    dr: RunResult
+    runs: dict[str, RunResult]
+    attempts: list[FixAttempt]
+    metrics: dict
+    wall_s: float
+
+
+def compare_world(
+    inputs: RunInputs,
+    config: CompareConfig | None = None,
+    on_progress: Callable[[str, float], None] | None = None,
+    relocalizer: Relocalizer | None = None,
+) -> WorldComparison:
+    """Run dead reckoning, the reference pass, and every back-end with and without the shared fixes."""
+    cfg = config or CompareConfig()
+    if not cfg.backends:
+        raise CompareError("no back-end to compare")
+    if cfg.reference_backend not in cfg.backends:
+        raise CompareError(f"reference_backend {cfg.reference_backend!r} is not among {cfg.backends}")
+    wall0 = time.perf_counter()
+    gt = truth_of(inputs)
+
+    reloc = relocalizer or Relocalizer(inputs.catalog, cfg.relocalizer)
+    ref_key = run_key(cfg.reference_backend, True)
+    passes = [Pass(DR_KEY, "dr", {"build_map": False}, "none", "dead reckoning")]
+    for name in cfg.backends:
+        for with_reloc in (False, True):
+            key = run_key(name, with_reloc)
+            mode = "online" if key == ref_key else ("replay" if with_reloc else "none")
+            label = run_label(key) + (" (reference)" if mode == "online" else "")
+            passes.append(Pass(key, name, cfg.backend_overrides.get(name), mode, label))
+    runs = run_passes(inputs, passes, cfg.runner, reloc, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
+    dr = runs.pop(DR_KEY)
+    attempts = runs[ref_key].attempts
+    ordered = {run_key(n, r): runs[run_key(n, r)] for n in cfg.backends for r in (False, True)}
+    met = {k: run_metrics(r, gt, attempts if k.endswith("_reloc") else [], cfg.rpe_delta_m) for k, r in ordered.items()}
+    met[DR_KEY] = run_metrics(dr, gt, [], cfg.rpe_delta_m)
+    wall = time.perf_counter() - wall0
+    duration = dr.duration_s
+    summary = {
+        "name": inputs.name,
+        "source": inputs.source,
+        "duration_s": duration,
+        "distance_m": M.path_length_m(gt.positions_m) if gt is not None else float("nan"),
+        "wall_s": wall,
+        "real_time_factor": M.real_time_factor(duration, wall),
+        "matcher_build_s": getattr(reloc, "build_time_s", 0.0),
+        "reference_backend": cfg.reference_backend,
+        "runs": met,
+    }
+    if gt is not None:
+        base = met[run_key(cfg.backends[0], False)]["ate"]["rmse"]
+        for k in ordered:
+            summary["runs"][k]["ate_improvement_over_own_pct"] = M.improvement_pct(
+                met[run_key(k.split("_")[0], False)]["ate"]["rmse"], met[k]["ate"]["rmse"])
+            summary["runs"][k][f"ate_improvement_over_{cfg.backends[0]}_pct"] = M.improvement_pct(base, met[k]["ate"]["rmse"])
+    return WorldComparison(inputs, gt, dr, ordered, attempts, summary, wall)

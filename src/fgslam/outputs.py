@@ -1,0 +1,82 @@
+"""Files of a single run: ``trajectory.tum``, ``metrics.json``, ``fixes.csv``, ``config.yaml``."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from fgslam import metrics as M
+from fgslam.report import _jsonable
+from fgslam.runner import RunResult
+from reloc.backend import Trajectory
+
+FIX_COLUMNS = [
+    "t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "var_x", "var_y", "var_yaw", "cov_xy", "cov_xyaw", "cov_yyaw",
+    "n_inliers", "rmse_m", "accepted", "reason", "error_position_m", "error_yaw_rad",
+]
+
+
+def write_fixes_csv(path: Path, run: RunResult, gt: Trajectory | None) -> Path:
+    """One row per fix the back-end received: the fix, its covariance, outcome and (with truth) error."""
+    path = Path(path)
+    rows = []
+    outs = run.outcomes
+    if outs and gt is not None:
+        pos, yaw = M.fix_errors(np.array([o.fix.xyyaw for o in outs]), np.array([o.fix.t_meas for o in outs]), gt)
+    else:
+        pos = yaw = np.full(len(outs), np.nan)
+    for o, ep, ey in zip(outs, pos, yaw):
+        f, C = o.fix, o.fix.cov_xyyaw
+        rows.append([f.t_meas, f.t_recv, f.x_m, f.y_m, f.yaw_rad, C[0, 0], C[1, 1], C[2, 2], C[0, 1], C[0, 2], C[1, 2],
+                     f.n_inliers, f.rmse_m, int(o.accepted), o.reason, ep, ey])
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(FIX_COLUMNS)
+        for r in rows:
+            w.writerow([f"{v:.9g}" if isinstance(v, (float, np.floating)) else v for v in r])
+    return path
+
+
+def write_run_outputs(out: Path, run: RunResult, gt: Trajectory | None, metrics: dict, config: dict) -> list[Path]:
+    """Write the four files of ``fgslam run`` into ``out``; returns their paths."""
+    import yaml
+
+    from fgslam.io.tum import write_tum
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tum = out / "trajectory.tum"
+    write_tum(tum, run.final.t, run.final.T_world_base)
+    met = out / "metrics.json"
+    met.write_text(json.dumps(_jsonable(metrics), indent=2))
+    fixes = write_fixes_csv(out / "fixes.csv", run, gt)
+    cfg = out / "config.yaml"
+    cfg.write_text(yaml.safe_dump(_jsonable(config), sort_keys=False))
+    return [tum, met, fixes, cfg]
+
+
+def write_comparison(out: Path, comparisons: list, config, rrd: bool = True) -> list[Path]:
+    """table.md, results.json, PNG plots per world, compare.rrd and config.yaml of a comparison."""
+    import yaml
+
+    from fgslam.report import write_results
+    from fgslam.viz.plots import write_plots
+    from reloc.config import config_to_dict
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = list(write_results(out, [wc.metrics for wc in comparisons], {"config": config_to_dict(config)}))
+    for wc in comparisons:
+        files += write_plots(out, wc)
+    if rrd:
+        from fgslam.viz.rerun_log import write_comparison_rrd
+
+        files.append(write_comparison_rrd(out / "compare.rrd", comparisons))
+    cfg = out / "config.yaml"
+    cfg.write_text(yaml.safe_dump(_jsonable({"config": config_to_dict(config),
+                                             "inputs": [wc.inputs.source for wc in comparisons]}), sort_keys=False))
+    files.append(cfg)
+    return files

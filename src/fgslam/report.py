@@ -1,0 +1,112 @@
+"""Tables and JSON of a comparison, in the shape of the reference's Tables III/IV.
+
+Columns are worlds; rows are the traverse (distance, duration), then per variant ATE (RMSE, the
+``evo_ape`` figure), ATE max, RPE per 10 m, and the ATE improvement, then fix statistics,
+3-sigma consistency and runtime.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+
+def _f(v, fmt: str = "{:.3f}") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return fmt.format(v)
+
+
+def _variants(summary: dict) -> list[str]:
+    return [k for k in summary["runs"] if k != "dead_reckoning"]
+
+
+def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
+    """(row label, one cell per world) for the markdown table."""
+    from fgslam.compare import run_label
+
+    rows: list[tuple[str, list[str]]] = []
+
+    def row(label, fn, fmt="{:.3f}"):
+        cells = []
+        for s in summaries:
+            try:
+                cells.append(_f(fn(s), fmt))
+            except (KeyError, TypeError):
+                cells.append("–")
+        rows.append((label, cells))
+
+    row("Distance [m]", lambda s: s["distance_m"], "{:.2f}")
+    row("Duration [s]", lambda s: s["duration_s"], "{:.1f}")
+    row("Dead reckoning ATE [m]", lambda s: s["runs"]["dead_reckoning"]["ate"]["rmse"])
+    variants = _variants(summaries[0]) if summaries else []
+    base = variants[0] if variants else None
+    for k in variants:
+        lab = run_label(k)
+        row(f"{lab} ATE [m]", lambda s, k=k: s["runs"][k]["ate"]["rmse"])
+        row(f"{lab} ATE max [m]", lambda s, k=k: s["runs"][k]["ate"]["max"])
+        row(f"{lab} RPE/10 m [m]", lambda s, k=k: s["runs"][k]["rpe"]["rmse"])
+        if k.endswith("_reloc"):
+            row(f"{lab} ATE improvement [%]", lambda s, k=k: s["runs"][k]["ate_improvement_over_own_pct"], "{:.1f}")
+            if base and not k.startswith(base.split("_")[0]):
+                row(f"{lab} vs {run_label(base)} ATE improvement [%]",
+                    lambda s, k=k: s["runs"][k][f"ate_improvement_over_{base}_pct"], "{:.1f}")
+    ref = next((k for k in variants if k.endswith("_reloc")), None)
+    if ref:
+        fx = lambda s: s["runs"][ref]["fixes"]
+        row("Fix attempts", lambda s: fx(s)["attempts"], "{:d}")
+        row("Fixes", lambda s: fx(s)["fixes"], "{:d}")
+        row("Fix rate [Hz]", lambda s: fx(s)["rate_hz"], "{:.3f}")
+        row("Fix position error median [m]", lambda s: fx(s)["position_error_m"]["median"])
+        row("Fix position error mean [m]", lambda s: fx(s)["position_error_m"]["mean"])
+        row("Fix NEES (x,y,yaw) mean", lambda s: fx(s)["nees_mean"], "{:.2f}")
+        row("Fix yaw error median [deg]", lambda s: np.degrees(fx(s)["yaw_error_rad"]["median"]), "{:.2f}")
+        for th in ("0.5", "1", "2"):
+            row(f"Fixes within {th} m [%]", lambda s, th=th: 100 * fx(s)["within_m"][th], "{:.1f}")
+        for k in variants:
+            if k.endswith("_reloc"):
+                row(f"Fixes accepted by {run_label(k.split('_')[0])}", lambda s, k=k: s["runs"][k]["fixes"]["accepted"], "{:d}")
+    for k in variants:
+        row(f"{run_label(k)} inside 3σ [%]", lambda s, k=k: 100 * s["runs"][k]["consistency"]["inside_3sigma"], "{:.1f}")
+        row(f"{run_label(k)} mean NEES (x,y,yaw)", lambda s, k=k: s["runs"][k]["consistency"]["nees_mean"], "{:.2f}")
+    for k in variants:
+        row(f"{run_label(k)} wall time [s]", lambda s, k=k: s["runs"][k]["runtime"]["wall_s"], "{:.1f}")
+    row("Whole comparison wall time [s]", lambda s: s["wall_s"], "{:.1f}")
+    row("Whole comparison real-time factor [x]", lambda s: s["real_time_factor"], "{:.1f}")
+    return rows
+
+
+def markdown_table(summaries: list[dict]) -> str:
+    """The comparison table (markdown), one column per world."""
+    head = "| Metric | " + " | ".join(s["name"] for s in summaries) + " |"
+    sep = "| --- | " + " | ".join("---:" for _ in summaries) + " |"
+    lines = [head, sep] + [f"| {label} | " + " | ".join(cells) + " |" for label, cells in table_rows(summaries)]
+    return "\n".join(lines) + "\n"
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        return float(o) if math.isfinite(float(o)) else None
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    return o
+
+
+def write_results(out_dir: Path, summaries: list[dict], extra: dict | None = None) -> tuple[Path, Path]:
+    """Write OUT/table.md and OUT/results.json; returns their paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table = out_dir / "table.md"
+    table.write_text(markdown_table(summaries))
+    res = out_dir / "results.json"
+    res.write_text(json.dumps(_jsonable({"worlds": summaries, **(extra or {})}), indent=2))
+    return table, res

@@ -1,0 +1,224 @@
+"""The one rerun module: entity paths, the timeline, the blueprint, and .rrd writers.
+
+Everything is drawn as a flat map in 3D views (x/y world metres, z = a layer height), so the
+orbital image can be a textured quad under the catalog, the truth and the estimates. Per world
+``W`` and variant key ``K`` ("ekf", "ekf_reloc", "isam2", "isam2_reloc"):
+
+- ``/W/map/orbital``, ``/W/map/catalog``, ``/W/map/truth`` (static), ``/W/map/truth_pose`` (timeline);
+- ``/W/K/path`` (final trajectory, static), ``/W/K/pose`` and ``/W/K/pose_cov`` (online estimate and
+  its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks`` (final map with 3-sigma ellipses, static),
+  ``/W/K/fixes`` (fix events at t_recv, green accepted / red rejected);
+- ``/W/matches`` (matched local->catalog rock pairs at t_meas);
+- ``/W/errors/position/K`` and ``.../K_3sigma``, ``/W/errors/yaw/K`` and ``.../K_3sigma`` (scalars).
+
+Time is stream seconds on the ``sim_time`` timeline. No server is started: recordings go to a
+file (``RecordingStream.save``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fgslam import metrics as M
+
+TIMELINE = "sim_time"
+APP_ID = "fgslam"
+# layer heights of the flat map (m)
+Z_IMAGE, Z_CATALOG, Z_LANDMARKS, Z_TRUTH, Z_PATH, Z_FIX = 0.0, 0.02, 0.04, 0.06, 0.08, 0.1
+MAX_IMAGE_PX = 1024
+
+ENT_ORBITAL = "map/orbital"
+ENT_CATALOG = "map/catalog"
+ENT_TRUTH = "map/truth"
+ENT_TRUTH_POSE = "map/truth_pose"
+ENT_MATCHES = "matches"
+ENT_PATH, ENT_POSE, ENT_POSE_COV, ENT_LANDMARKS, ENT_FIXES = "path", "pose", "pose_cov", "landmarks", "fixes"
+ENT_ERR_POS, ENT_ERR_YAW = "errors/position", "errors/yaw"
+
+COLORS = {"truth": (44, 160, 44), "dr": (127, 127, 127), "ekf": (31, 119, 180), "isam2": (214, 39, 40),
+          "catalog": (230, 190, 110), "fix_ok": (40, 220, 80), "fix_bad": (230, 40, 40), "match": (255, 150, 20)}
+
+
+def _color(key: str) -> tuple[int, int, int]:
+    return COLORS.get(key.split("_")[0], (200, 200, 200))
+
+
+def _downsample(img: np.ndarray) -> np.ndarray:
+    step = int(np.ceil(max(img.shape[:2]) / MAX_IMAGE_PX))
+    return np.ascontiguousarray(img[::step, ::step]) if step > 1 else img
+
+
+def _ellipses(cov_xy: np.ndarray, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """Half sizes (K, 3) and z-rotation quaternions xyzw (K, 4) of the ``sigmas`` ellipses of (K, 2, 2) covariances."""
+    w, v = np.linalg.eigh(0.5 * (cov_xy + np.swapaxes(cov_xy, 1, 2)))
+    half = np.zeros((len(w), 3))
+    half[:, :2] = sigmas * np.sqrt(np.clip(w, 1e-12, None))
+    half[:, 2] = 0.005
+    ang = np.arctan2(v[:, 1, 0], v[:, 0, 0])
+    q = np.zeros((len(w), 4))
+    q[:, 2], q[:, 3] = np.sin(ang / 2), np.cos(ang / 2)
+    return half, q
+
+
+def _flat(xy: np.ndarray, z: float) -> np.ndarray:
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    return np.column_stack([xy, np.full(len(xy), z)])
+
+
+def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
+    """Log one world's map, truth, every run of ``runs`` (key -> RunResult) and the fix attempts."""
+    import rerun as rr
+
+    def p(*parts: str) -> str:
+        return "/".join((world,) + parts)
+
+    if inputs.orbital_image is not None and inputs.orbital_extent is not None:
+        x0, x1, y0, y1 = inputs.orbital_extent
+        rec.log(p(ENT_ORBITAL), rr.Mesh3D(
+            vertex_positions=[[x0, y1, Z_IMAGE], [x1, y1, Z_IMAGE], [x1, y0, Z_IMAGE], [x0, y0, Z_IMAGE]],
+            triangle_indices=[[0, 1, 2], [0, 2, 3]],
+            vertex_normals=[[0, 0, 1]] * 4,
+            vertex_texcoords=[[0, 0], [1, 0], [1, 1], [0, 1]],
+            albedo_texture=_downsample(np.asarray(inputs.orbital_image)[:, :, :3]),
+        ), static=True)
+    cat = inputs.catalog
+    rec.log(p(ENT_CATALOG), rr.Points3D(_flat(cat.xy_m, Z_CATALOG), radii=0.5 * cat.size_m,
+                                        colors=COLORS["catalog"]), static=True)
+    if gt is not None:
+        rec.log(p(ENT_TRUTH), rr.LineStrips3D([_flat(gt.positions_m[:, :2], Z_TRUTH)], colors=COLORS["truth"],
+                                              radii=0.04), static=True)
+        step = max(1, len(gt) // 3000)
+        rr.send_columns(p(ENT_TRUTH_POSE), indexes=[rr.TimeColumn(TIMELINE, duration=gt.t[::step])],
+                        columns=rr.Points3D.columns(positions=_flat(gt.positions_m[::step, :2], Z_TRUTH)),
+                        recording=rec)
+    for key, run in runs.items():
+        _log_run(rec, world, key, run, gt)
+    for a in attempts:
+        if a.fix is None or len(a.local_xy) == 0:
+            continue
+        rec.set_time(TIMELINE, duration=a.t_meas)
+        strips = [np.array([[*l, Z_FIX], [*w, Z_FIX]]) for l, w in zip(a.local_xy, a.world_xy)]
+        rec.log(p(ENT_MATCHES), rr.LineStrips3D(strips, colors=COLORS["match"], radii=0.02))
+    rec.reset_time()
+
+
+def _log_run(rec, world: str, key: str, run, gt) -> None:
+    import rerun as rr
+
+    def p(*parts: str) -> str:
+        return "/".join((world, key) + parts)
+
+    col = _color(key)
+    if len(run.final):
+        rec.log(p(ENT_PATH), rr.LineStrips3D([_flat(run.final.positions_m[:, :2], Z_PATH)], colors=col, radii=0.03),
+                static=True)
+    lm = run.landmarks
+    if len(lm):
+        half, q = _ellipses(lm.cov_world_m2[:, :2, :2])
+        rec.log(p(ENT_LANDMARKS), rr.Ellipsoids3D(centers=_flat(lm.xyz_world_m[:, :2], Z_LANDMARKS), half_sizes=half,
+                                                  quaternions=q, colors=col, fill_mode="solid"), static=True)
+    on = run.online
+    if len(on):
+        idx = rr.TimeColumn(TIMELINE, duration=on.t)
+        rr.send_columns(p(ENT_POSE), indexes=[idx], columns=rr.Points3D.columns(
+            positions=_flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
+        half, q = _ellipses(on.cov[:, :2, :2])
+        rr.send_columns(p(ENT_POSE_COV), indexes=[idx], columns=rr.Ellipsoids3D.columns(
+            centers=_flat(on.positions_m[:, :2], Z_PATH), half_sizes=half, quaternions=q), recording=rec)
+        if gt is not None:
+            _log_errors(rec, world, key, run, gt)
+    if run.outcomes:
+        t = np.array([o.fix.t_recv for o in run.outcomes])
+        xy = np.array([[o.fix.x_m, o.fix.y_m] for o in run.outcomes])
+        colors = np.array([COLORS["fix_ok"] if o.accepted else COLORS["fix_bad"] for o in run.outcomes], dtype=np.uint8)
+        rr.send_columns(p(ENT_FIXES), indexes=[rr.TimeColumn(TIMELINE, duration=t)], columns=rr.Points3D.columns(
+            positions=_flat(xy, Z_FIX), colors=colors, radii=np.full(len(t), 0.2)), recording=rec)
+
+
+def _log_errors(rec, world: str, key: str, run, gt) -> None:
+    import rerun as rr
+
+    _, s = M.consistency(run.online, gt)
+    idx = [rr.TimeColumn(TIMELINE, duration=s["t"])]
+    err_pos = np.linalg.norm(s["err_xy"], axis=1)
+    mask = np.isin(run.online.t, s["t"])
+    sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(run.online.cov[mask][:, :2, :2])[:, -1])
+    for ent, vals in (
+        (f"{ENT_ERR_POS}/{key}", err_pos),
+        (f"{ENT_ERR_POS}/{key}_3sigma", sig_pos),
+        (f"{ENT_ERR_YAW}/{key}", np.degrees(np.abs(s["err_yaw"]))),
+        (f"{ENT_ERR_YAW}/{key}_3sigma", np.degrees(3.0 * s["sigma_yaw"])),
+    ):
+        rr.send_columns(f"{world}/{ent}", indexes=idx, columns=rr.Scalars.columns(scalars=vals), recording=rec)
+        dashed = ent.endswith("3sigma")
+        rec.log(f"{world}/{ent}", rr.SeriesLines(colors=_color(key), widths=0.8 if dashed else 1.5,
+                                                 names=f"{key} {'3σ' if dashed else 'error'}"), static=True)
+
+
+def world_view(world: str, keys: list[str], center_xy: np.ndarray, span_m: float):
+    """Blueprint of one world: the map views of ``keys`` side by side, error time series below."""
+    import rerun.blueprint as rrb
+
+    eye = rrb.EyeControls3D(position=[float(center_xy[0]), float(center_xy[1]) - 0.01, 1.2 * span_m],
+                            look_target=[float(center_xy[0]), float(center_xy[1]), 0.0], eye_up=[0.0, 1.0, 0.0])
+    from fgslam.compare import run_label
+
+    maps = [
+        rrb.Spatial3DView(origin=f"/{world}", name=f"{world}: {run_label(k)}",
+                          contents=[f"/{world}/map/**", f"/{world}/{k}/**", f"/{world}/{ENT_MATCHES}/**"],
+                          eye_controls=eye, line_grid=False)
+        for k in keys
+    ]
+    series = [
+        rrb.TimeSeriesView(origin=f"/{world}/{ENT_ERR_POS}", name="position error [m] and 3σ"),
+        rrb.TimeSeriesView(origin=f"/{world}/{ENT_ERR_YAW}", name="yaw error [deg] and 3σ"),
+    ]
+    return rrb.Vertical(rrb.Horizontal(*maps), rrb.Horizontal(*series), row_shares=[3, 2], name=world)
+
+
+def _view_keys(runs: dict) -> list[str]:
+    keys = [k for k in runs if k.endswith("_reloc")]
+    return keys or list(runs)
+
+
+def blueprint(worlds: list[tuple[str, list[str], np.ndarray, float]]):
+    """Blueprint of a recording: one tab per world (see :func:`world_view`)."""
+    import rerun.blueprint as rrb
+
+    views = [world_view(*w) for w in worlds]
+    root = views[0] if len(views) == 1 else rrb.Tabs(*views)
+    return rrb.Blueprint(
+        root,
+        rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+    )
+
+
+def _frame(inputs, gt, runs) -> tuple[np.ndarray, float]:
+    p = gt.positions_m[:, :2] if gt is not None else next(iter(runs.values())).final.positions_m[:, :2]
+    lo, hi = p.min(0) - 3.0, p.max(0) + 3.0
+    return 0.5 * (lo + hi), float(max(hi - lo))
+
+
+def write_rrd(path: Path, items: list[tuple[str, object, object, dict, list]], recording_id: str | None = None) -> Path:
+    """Write a recording of ``items`` = [(world, inputs, gt, runs, attempts)] with its blueprint to ``path``."""
+    import rerun as rr
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+    bp = blueprint([(w, _view_keys(runs), *_frame(inp, gt, runs)) for w, inp, gt, runs, _ in items])
+    rec.save(str(path), default_blueprint=bp)
+    for world, inputs, gt, runs, attempts in items:
+        log_world(rec, world, inputs, gt, runs, attempts)
+    rec.flush()
+    rec.disconnect()
+    return path
+
+
+def write_comparison_rrd(path: Path, comparisons: list) -> Path:
+    """One recording for a whole comparison (a tab per world)."""
+    return write_rrd(path, [(wc.inputs.name, wc.inputs, wc.gt, wc.runs, wc.attempts) for wc in comparisons])

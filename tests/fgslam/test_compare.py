@@ -1,0 +1,128 @@
+"""Comparison outputs on a synthetic traverse, CLI errors, and one seeded end-to-end CLI run."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from _synth_stream import NearestNeighbourMatcher, make_stream
+
+from fgslam.compare import CompareConfig, CompareError, compare_world
+from fgslam.outputs import write_comparison
+from fgslam.relocalizer import Relocalizer
+from fgslam.report import markdown_table
+
+
+def _compare(workers: int):
+    inputs = make_stream(seed=7, duration_s=40.0)
+    cfg = CompareConfig(backends=("dr",), reference_backend="dr", backend_overrides={"dr": {"use_fixes": True}},
+                        workers=workers)
+    reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
+    return cfg, compare_world(inputs, cfg, relocalizer=reloc)
+
+
+@pytest.fixture(scope="module")
+def compared():
+    return _compare(workers=1)
+
+
+def test_every_variant_receives_the_same_fixes(compared):
+    _, wc = compared
+    fixes = [a.fix for a in wc.attempts if a.fix is not None]
+    assert fixes, "the reference pass produced no fix"
+    for key, run in wc.runs.items():
+        if key.endswith("_reloc"):
+            assert [o.fix for o in run.outcomes] == [f for f in fixes if f.t_recv <= run.t_end]
+        else:
+            assert run.outcomes == []
+
+
+def test_forked_workers_give_identical_results(compared):
+    _, wc1 = compared
+    _, wc2 = _compare(workers=2)
+    for key in wc1.runs:
+        assert np.array_equal(wc1.runs[key].final.T_world_base, wc2.runs[key].final.T_world_base)
+    assert wc1.metrics["runs"]["dr_reloc"]["ate"] == wc2.metrics["runs"]["dr_reloc"]["ate"]
+
+
+def test_outputs_table_json_plots(tmp_path, compared):
+    cfg, wc = compared
+    files = write_comparison(tmp_path, [wc], cfg, rrd=False)
+    names = {f.name for f in files}
+    assert {"table.md", "results.json", "config.yaml", f"{wc.inputs.name}_xy.png",
+            f"{wc.inputs.name}_errors.png", f"{wc.inputs.name}_fix_errors.png"} <= names
+    res = json.loads((tmp_path / "results.json").read_text())
+    world = res["worlds"][0]
+    m = world["runs"]
+    # the table and the JSON hold the measured values
+    assert m["dr_reloc"]["ate"]["rmse"] < m["dr"]["ate"]["rmse"]
+    assert m["dr_reloc"]["fixes"]["fixes"] == len([a for a in wc.attempts if a.fix is not None])
+    assert world["distance_m"] == pytest.approx(wc.metrics["distance_m"])
+    table = (tmp_path / "table.md").read_text()
+    assert table == markdown_table([wc.metrics])
+    assert f"| Dead reckoning + reloc ATE [m] | {m['dr_reloc']['ate']['rmse']:.3f} |" in table
+    for png in ("xy", "errors", "fix_errors"):
+        assert (tmp_path / f"{wc.inputs.name}_{png}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bad_config_is_rejected():
+    inputs = make_stream(seed=1, duration_s=5.0)
+    with pytest.raises(CompareError, match="reference_backend"):
+        compare_world(inputs, CompareConfig(backends=("ekf",), reference_backend="isam2"))
+
+
+def _cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "fgslam", *args], check=False, capture_output=True, text=True, cwd=cwd)
+
+
+def test_cli_reports_missing_and_malformed_inputs(tmp_path):
+    r = _cli("compare", str(tmp_path / "nope"), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "not a directory" in r.stderr
+    (tmp_path / "d").mkdir()
+    r = _cli("run", str(tmp_path / "d"), "--backend", "isam2", "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "missing bag" in r.stderr
+    r = _cli("run", "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "--bag" in r.stderr
+    (tmp_path / "bad.yaml").write_text("relocalizer: {period_s: -1}\n")
+    r = _cli("run", str(tmp_path / "d"), "--out", str(tmp_path / "o"), "--config", str(tmp_path / "bad.yaml"))
+    assert r.returncode == 2 and "period_s" in r.stderr
+    (tmp_path / "typo.yaml").write_text("relocaliser: {}\n")
+    r = _cli("run", str(tmp_path / "d"), "--out", str(tmp_path / "o"), "--config", str(tmp_path / "typo.yaml"))
+    assert r.returncode == 2 and "relocaliser" in r.stderr
+
+
+@pytest.mark.slow
+def test_cli_sim_run_compare_end_to_end(tmp_path):
+    """`fgslam sim` -> `fgslam run` (files read back by evo) -> `fgslam compare` on a short seeded traverse."""
+    from evo.tools import file_interface
+    from rerun.chunk import RrdReader
+
+    sim_dir = tmp_path / "sim"
+    r = _cli("sim", "--world", "my2022", "--seed", "3", "--distance-m", "6", "--out", str(sim_dir))
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = tmp_path / "run"
+    r = _cli("run", str(sim_dir), "--backend", "isam2", "--out", str(out), "--rrd", str(out / "run.rrd"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    traj = file_interface.read_tum_trajectory_file(str(out / "trajectory.tum"))
+    met = json.loads((out / "metrics.json").read_text())
+    assert traj.num_poses == met["ate"]["n"]
+    assert met["ate"]["rmse"] < 0.5
+    assert (out / "fixes.csv").read_text().startswith("t_meas,t_recv,x_m,y_m,yaw_rad")
+    import yaml
+
+    used = yaml.safe_load((out / "config.yaml").read_text())
+    assert used["backend"] == "isam2" and used["relocalization"] is True and "period_s" in used["relocalizer"]
+    assert any(c.entity_path.endswith("/isam2_reloc/path") for c in RrdReader(out / "run.rrd").stream())
+    cmp_out = tmp_path / "cmp"
+    r = _cli("compare", str(sim_dir), "--out", str(cmp_out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    res = json.loads((cmp_out / "results.json").read_text())
+    runs = res["worlds"][0]["runs"]
+    assert set(runs) == {"ekf", "ekf_reloc", "isam2", "isam2_reloc", "dead_reckoning"}
+    # the compare's iSAM2 + reloc run is the same computation as `fgslam run` above
+    assert runs["isam2_reloc"]["ate"]["rmse"] == pytest.approx(met["ate"]["rmse"], rel=1e-9)
+    assert "| Distance [m] |" in r.stdout and (cmp_out / "compare.rrd").exists()
+    assert (cmp_out / f"{sim_dir.name}_xy.png").exists()

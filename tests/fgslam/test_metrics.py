@@ -1,0 +1,167 @@
+"""Metrics against hand-computed cases, and ATE against evo's APE on our TUM files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fgslam import metrics as M
+from reloc.backend import Trajectory
+
+
+def _traj(t, xy, yaw, z=None, cov=None) -> Trajectory:
+    n = len(t)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.from_euler("z", np.asarray(yaw, float).reshape(-1, 1)).as_matrix()
+    T[:, 0, 3], T[:, 1, 3] = xy[:, 0], xy[:, 1]
+    if z is not None:
+        T[:, 2, 3] = z
+    return Trajectory(np.asarray(t, float), T, cov)
+
+
+def _line(n=11, speed=1.0):
+    t = np.arange(n, dtype=float)
+    return t, np.column_stack([speed * t, np.zeros(n)]), np.zeros(n)
+
+
+def test_ate_constant_offset_is_its_norm():
+    t, xy, yaw = _line()
+    gt = _traj(t, xy, yaw)
+    est = _traj(t, xy + [3.0, 4.0], yaw)
+    s = M.ate(est, gt)
+    assert s.rmse == pytest.approx(5.0) and s.mean == pytest.approx(5.0) and s.max == pytest.approx(5.0)
+    assert s.n == 11
+    # an offset is a rigid motion: the SE(2)-aligned ATE removes it
+    assert M.ate(est, gt, align_se2=True).rmse == pytest.approx(0.0, abs=1e-9)
+
+
+def test_ate_hand_computed_growing_error():
+    t = np.array([0.0, 1.0, 2.0])
+    gt = _traj(t, np.array([[0, 0], [1, 0], [2, 0]], float), np.zeros(3))
+    est = _traj(t, np.array([[0, 0], [1, 1], [2, 2]], float), np.zeros(3))
+    s = M.ate(est, gt)
+    assert s.rmse == pytest.approx(np.sqrt(5 / 3))
+    assert s.mean == pytest.approx(1.0)
+    assert s.max == pytest.approx(2.0)
+    assert s.median == pytest.approx(1.0)
+
+
+def test_ate_interpolates_truth_at_estimate_stamps():
+    gt = _traj(np.array([0.0, 2.0]), np.array([[0.0, 0.0], [2.0, 0.0]]), np.zeros(2))
+    est = _traj(np.array([1.0]), np.array([[1.0, 0.5]]), np.zeros(1))
+    est2 = Trajectory(np.array([1.0, 1.5]), np.concatenate([est.T_world_base, est.T_world_base]))
+    s = M.ate(est2, gt)  # errors: |(1,.5)-(1,0)| = .5 and |(1,.5)-(1.5,0)| = sqrt(.5)
+    assert s.rmse == pytest.approx(np.sqrt((0.25 + 0.5) / 2))
+
+
+def test_umeyama_recovers_rotation_and_translation(rng):
+    src = rng.normal(size=(20, 2))
+    a = 0.7
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    dst = src @ R.T + [2.0, -1.0]
+    R_fit, t_fit = M.umeyama_se2(src, dst)
+    assert np.allclose(R_fit, R) and np.allclose(t_fit, [2.0, -1.0])
+
+
+def test_aligned_ate_removes_rigid_transform_only():
+    t, xy, yaw = _line(21)
+    xy[:, 1] = 0.1 * t**1.5  # a curved path
+    gt = _traj(t, xy, yaw)
+    a = 0.3
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    est = _traj(t, xy @ R.T + [1.0, 2.0], yaw + a)
+    assert M.ate(est, gt).rmse > 1.0
+    assert M.ate(est, gt, align_se2=True).rmse == pytest.approx(0.0, abs=1e-9)
+
+
+def test_rpe_zero_for_rigidly_moved_path_and_hand_value_for_scale_error():
+    t, xy, yaw = _line(31)  # 30 m straight line at 1 m/s
+    gt = _traj(t, xy, yaw)
+    est = _traj(t, xy + [5.0, -2.0], yaw)
+    assert M.rpe_per_distance(est, gt, 10.0).max == pytest.approx(0.0, abs=1e-9)
+    est_scaled = _traj(t, 1.1 * xy, yaw)  # 10 % too long: 1 m error per 10 m segment
+    s = M.rpe_per_distance(est_scaled, gt, 10.0)
+    assert s.n == 21
+    assert s.rmse == pytest.approx(1.0) and s.max == pytest.approx(1.0)
+
+
+def test_consistency_nees_and_inside_fraction():
+    t = np.arange(4, dtype=float)
+    gt = _traj(t, np.zeros((4, 2)), np.zeros(4))
+    cov = np.tile(np.eye(6) * 0.01, (4, 1, 1))  # sigma 0.1 m, 0.1 rad
+    # errors of 0, 1, 2, 4 sigma along x
+    est = _traj(t, np.array([[0.0, 0], [0.1, 0], [0.2, 0], [0.4, 0]]), np.zeros(4), cov=cov)
+    s, series = M.consistency(est, gt)
+    assert s.nees_xy_mean == pytest.approx((0 + 1 + 4 + 16) / 4)
+    assert s.nees_mean == pytest.approx((0 + 1 + 4 + 16) / 4)
+    assert s.inside_3sigma == pytest.approx(0.75)  # 16 > 11.83
+    assert s.inside_3sigma_axes == pytest.approx(0.75)
+    assert np.allclose(series["sigma_xy"], 0.1)
+
+
+def test_consistency_counts_yaw_error_with_wrap():
+    t = np.arange(2, dtype=float)
+    gt = _traj(t, np.zeros((2, 2)), np.array([np.pi - 0.05, np.pi - 0.05]))
+    cov = np.tile(np.eye(6) * 0.01, (2, 1, 1))
+    est = _traj(t, np.zeros((2, 2)), np.array([-np.pi + 0.05, -np.pi + 0.05]), cov=cov)
+    s, series = M.consistency(est, gt)
+    assert np.allclose(series["err_yaw"], 0.1)
+    assert s.nees_mean == pytest.approx(1.0)
+
+
+def test_fix_stats_hand_case():
+    t, xy, yaw = _line(11)
+    gt = _traj(t, xy, yaw)
+    fixes = np.array([[1.0, 0.3, 0.0], [2.0, 0.0, 0.1], [3.0, 1.5, 0.0], [4.5, 0.0, 0.0]])
+    s = M.fix_stats(8, fixes, np.array([1.0, 2.0, 3.0, 4.0]), np.array([3.0, 4.0, 5.0, 6.0]),
+                    np.array([True, True, False, True]), gt, duration_s=10.0)
+    assert s.attempts == 8 and s.fixes == 4 and s.accepted == 3
+    assert s.rate_hz == pytest.approx(0.4) and s.accepted_rate_hz == pytest.approx(0.3)
+    assert s.position_error_m.median == pytest.approx(0.4)  # errors 0.3, 0, 1.5, 0.5
+    assert s.within_m == {"0.5": 0.75, "1": 0.75, "2": 1.0}
+    assert s.yaw_error_rad.max == pytest.approx(0.1)
+    assert s.latency_s_mean == pytest.approx(2.0)
+
+
+def test_runtime_helpers():
+    assert M.real_time_factor(100.0, 2.0) == pytest.approx(50.0)
+    assert M.improvement_pct(2.0, 0.5) == pytest.approx(75.0)
+    assert M.path_length_m(np.array([[0, 0], [3, 4], [3, 5]])) == pytest.approx(6.0)
+
+
+def test_errors_are_clear():
+    gt = _traj(np.array([0.0, 1.0]), np.zeros((2, 2)), np.zeros(2))
+    est = _traj(np.array([5.0, 6.0]), np.zeros((2, 2)), np.zeros(2))
+    with pytest.raises(M.MetricsError, match="do not overlap"):
+        M.ate(est, gt)
+    with pytest.raises(M.MetricsError, match="covariance"):
+        M.consistency(gt, gt)
+
+
+def test_ate_matches_evo_ape_on_tum_files(tmp_path, rng):
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+    from evo.tools import file_interface
+
+    from fgslam.io.tum import write_tum
+
+    t = np.arange(0, 60, 1 / 30)
+    yaw = 0.3 * np.sin(t / 10)
+    xy = np.column_stack([np.cumsum(np.cos(yaw)) * 0.01, np.cumsum(np.sin(yaw)) * 0.01])
+    gt = _traj(t, xy, yaw, z=0.2 * np.sin(t / 7))
+    te = t[::3]  # the estimate at 10 Hz, on the truth's stamps
+    drift = np.column_stack([0.01 * te, -0.005 * te]) + rng.normal(0, 0.02, (len(te), 2))
+    est = _traj(te, xy[::3] + drift, yaw[::3] + 0.01, z=0.2 * np.sin(te / 7) + 0.05)
+    write_tum(tmp_path / "gt.tum", gt.t, gt.T_world_base)
+    write_tum(tmp_path / "est.tum", est.t, est.T_world_base)
+    traj_ref = file_interface.read_tum_trajectory_file(str(tmp_path / "gt.tum"))
+    traj_est = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))
+    traj_ref, traj_est = sync.associate_trajectories(traj_ref, traj_est, max_diff=0.01)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((traj_ref, traj_est))
+    ours = M.ate(est, gt)
+    assert ours.n == traj_est.num_poses
+    assert ours.rmse == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.rmse), rel=1e-6)
+    assert ours.mean == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.mean), rel=1e-6)
+    assert ours.max == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.max), rel=1e-6)

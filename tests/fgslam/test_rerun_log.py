@@ -1,0 +1,78 @@
+"""The comparison recording: read the .rrd back and check entities, timeline and blueprint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from _synth_stream import NearestNeighbourMatcher, make_stream
+
+from fgslam.compare import CompareConfig, compare_world
+from fgslam.relocalizer import Relocalizer
+from fgslam.viz import rerun_log
+
+
+@pytest.fixture(scope="module")
+def comparison():
+    inputs = make_stream(seed=5, duration_s=40.0)
+    cfg = CompareConfig(backends=("dr",), reference_backend="dr", backend_overrides={"dr": {"use_fixes": True}}, workers=1)
+    reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
+    return compare_world(inputs, cfg, relocalizer=reloc)
+
+
+def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
+    from rerun.chunk import RrdReader
+
+    path = rerun_log.write_comparison_rrd(tmp_path / "compare.rrd", [comparison])
+    reader = RrdReader(path)
+    assert len(reader.recordings()) == 1
+    chunks = list(reader.stream())
+    paths = {c.entity_path for c in chunks}
+    w = "/" + comparison.inputs.name
+    for key in ("dr", "dr_reloc"):
+        for ent in (rerun_log.ENT_PATH, rerun_log.ENT_POSE, rerun_log.ENT_POSE_COV, rerun_log.ENT_LANDMARKS):
+            assert f"{w}/{key}/{ent}" in paths
+        assert f"{w}/{rerun_log.ENT_ERR_POS}/{key}" in paths
+        assert f"{w}/{rerun_log.ENT_ERR_POS}/{key}_3sigma" in paths
+        assert f"{w}/{rerun_log.ENT_ERR_YAW}/{key}" in paths
+    for ent in (rerun_log.ENT_ORBITAL, rerun_log.ENT_CATALOG, rerun_log.ENT_TRUTH, rerun_log.ENT_TRUTH_POSE, rerun_log.ENT_MATCHES):
+        assert f"{w}/{ent}" in paths
+    assert f"{w}/dr_reloc/{rerun_log.ENT_FIXES}" in paths  # fix events of the run that received fixes
+    # static map, time-varying estimate on the sim_time timeline
+    by_path = {}
+    for c in chunks:
+        by_path.setdefault(c.entity_path, []).append(c)
+    assert all(c.is_static for c in by_path[f"{w}/{rerun_log.ENT_CATALOG}"])
+    pose_chunks = by_path[f"{w}/dr_reloc/{rerun_log.ENT_POSE}"]
+    assert all(rerun_log.TIMELINE in c.timeline_names for c in pose_chunks)
+    assert sum(c.num_rows for c in pose_chunks) == len(comparison.runs["dr_reloc"].online)
+    err_rows = sum(c.num_rows for c in by_path[f"{w}/{rerun_log.ENT_ERR_POS}/dr_reloc"] if not c.is_static)
+    assert err_rows == len(comparison.runs["dr_reloc"].online)
+    # the blueprint is saved with the recording and has views
+    bps = reader.blueprints()
+    assert len(bps) == 1
+    views = {}
+    bp_paths = set()
+    for c in reader.stream(store=bps[0]):
+        bp_paths.add(c.entity_path)
+        if c.entity_path.startswith("/view/") and c.entity_path.count("/") == 2:
+            rb = c.to_record_batch()
+            cols = {n.split(":")[-1]: rb.column(i).to_pylist()[0][0] for i, n in enumerate(rb.schema.names) if ":" in n}
+            views[cols["display_name"]] = (cols["class_identifier"], cols["space_origin"])
+    name = comparison.inputs.name
+    assert views[f"{name}: Dead reckoning + reloc"] == ("3D", w)  # one map view per variant with fixes
+    assert views["position error [m] and 3σ"] == ("TimeSeries", f"{w}/{rerun_log.ENT_ERR_POS}")
+    assert views["yaw error [deg] and 3σ"] == ("TimeSeries", f"{w}/{rerun_log.ENT_ERR_YAW}")
+    assert "/viewport" in bp_paths
+
+
+def test_ellipses_are_three_sigma_and_rotated():
+    cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]]])
+    half, q = rerun_log._ellipses(cov)
+    assert np.allclose(np.sort(half[0, :2]), [3.0, 6.0])
+    assert np.allclose(np.sort(half[1, :2]), [3.0, 9.0])
+    assert np.allclose(np.linalg.norm(q, axis=1), 1.0)
+    # the largest axis of the second ellipse lies along y: eigenvector angle +-90 deg
+    big = int(np.argmax(half[1, :2]))
+    ang = 2 * np.arctan2(q[1, 2], q[1, 3])
+    axis = np.array([np.cos(ang), np.sin(ang)]) if big == 0 else np.array([-np.sin(ang), np.cos(ang)])
+    assert abs(abs(axis[1]) - 1.0) < 1e-9

@@ -1,0 +1,165 @@
+"""Runner and relocalizer on a seeded synthetic traverse with the dead-reckoning back-end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from _synth_stream import NearestNeighbourMatcher, make_stream
+
+from fgslam import metrics as M
+from fgslam.backends import DeadReckoning, DeadReckoningConfig, make_backend
+from fgslam.inputs import truth_of
+from fgslam.relocalizer import (
+    Relocalizer,
+    RelocalizerConfig,
+    RelocalizerError,
+    fix_from_similarity,
+    select_local_map,
+)
+from fgslam.runner import RunnerError, run_backend
+from reloc.backend import Backend, LandmarkMap, PoseEstimate
+
+
+@pytest.fixture(scope="module")
+def stream():
+    return make_stream(seed=3, duration_s=60.0)
+
+
+def _pose(x, y, yaw, t=10.0, sigma=0.1):
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    T[:2, 3] = x, y
+    return PoseEstimate(t, T, np.eye(6) * sigma**2)
+
+
+def test_dead_reckoning_is_a_backend_and_drifts(stream):
+    dr = DeadReckoning(stream.initial)
+    assert isinstance(dr, Backend)
+    res = run_backend(dr, stream.measurements)
+    gt = truth_of(stream)
+    ate = M.ate(res.final, gt)
+    # 5 % slip over ~14 m plus gyro bias: clearly drifting, but not absurd
+    assert 0.2 < ate.max < 3.0
+    assert len(res.online) == pytest.approx(res.duration_s * 10, abs=2)  # 10 Hz records
+    assert res.online.cov.shape == (len(res.online), 6, 6)
+    assert len(res.landmarks) > 30 and res.attempts == [] and res.outcomes == []
+
+
+def test_fix_from_similarity_undoes_a_known_map_error():
+    # truth pose (5, 2, 0.3); the estimate (and its map) is off by a rigid transform D^-1;
+    # a matcher returning D must give back the true pose exactly.
+    a, tr = 0.1, np.array([0.7, -0.4])
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    true_xy, true_yaw = np.array([5.0, 2.0]), 0.3
+    est_xy = R.T @ (true_xy - tr)
+    est = _pose(*est_xy, true_yaw - a)
+    inliers = np.random.default_rng(0).uniform(-5, 5, (12, 2)) + est_xy
+    cfg = RelocalizerConfig()
+    fix = fix_from_similarity(est, a, tr, 1.0, inliers, rmse_m=0.05, cfg=cfg, t_recv=12.0)
+    assert fix.t_meas == 10.0 and fix.t_recv == 12.0
+    assert np.allclose([fix.x_m, fix.y_m], true_xy) and fix.yaw_rad == pytest.approx(true_yaw)
+    assert np.all(np.linalg.eigvalsh(fix.cov_xyyaw) > 0)
+    # more inliers, tighter fix; farther from the inlier centroid, looser position
+    more = fix_from_similarity(est, a, tr, 1.0, np.vstack([inliers, inliers + 0.01]), 0.05, cfg, 12.0)
+    assert np.trace(more.cov_xyyaw[:2, :2]) < np.trace(fix.cov_xyyaw[:2, :2])
+    far = fix_from_similarity(est, a, tr, 1.0, inliers + [30.0, 0.0], 0.05, cfg, 12.0)
+    assert np.trace(far.cov_xyyaw[:2, :2]) > np.trace(fix.cov_xyyaw[:2, :2])
+    with pytest.raises(RelocalizerError, match="at least 3 inliers"):
+        fix_from_similarity(est, a, tr, 1.0, inliers[:2], 0.05, cfg, 12.0)
+
+
+def test_relocalizer_config_is_validated():
+    with pytest.raises(RelocalizerError, match="latency"):
+        RelocalizerConfig(latency="sometimes")
+    with pytest.raises(RelocalizerError, match="period_s"):
+        RelocalizerConfig(period_s=0.0)
+
+
+def test_select_local_map_keeps_seen_landmarks_near_the_rover():
+    xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [50, 0, 0]], float)
+    lm = LandmarkMap(np.arange(4), xyz, np.tile(np.eye(3), (4, 1, 1)), np.ones(4), np.array([3, 1, 5, 9]))
+    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=2, max_radius_m=20.0))
+    assert list(idx) == [0, 2]
+    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=1, max_landmarks=2))
+    assert list(idx) == [0, 1]
+
+
+def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):
+    gt = truth_of(stream)
+    cfg = RelocalizerConfig(period_s=4.0, delay_s=1.5)
+    reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+    be = make_backend("dr", stream.initial, {"use_fixes": True})
+    res = run_backend(be, stream.measurements, relocalizer=reloc)
+    base = run_backend(make_backend("dr", stream.initial), stream.measurements)
+    fixes = [a.fix for a in res.attempts if a.fix is not None]
+    assert len(res.attempts) == pytest.approx(res.duration_s / 4.0, abs=1)
+    assert len(fixes) >= 0.7 * len(res.attempts)
+    assert all(f.t_recv == pytest.approx(f.t_meas + 1.5) for f in fixes)
+    # every fix delivered (except those due after the end) and accepted
+    assert len(res.outcomes) == sum(f.t_recv <= res.t_end for f in fixes)
+    assert all(o.accepted for o in res.outcomes)
+    pos_err, _ = M.fix_errors(np.array([f.xyyaw for f in fixes]), np.array([f.t_meas for f in fixes]), gt)
+    assert np.median(pos_err) < 0.5
+    assert M.ate(res.final, gt).rmse < 0.7 * M.ate(base.final, gt).rmse
+
+
+def test_replaying_the_fix_list_reproduces_the_online_run(stream):
+    cfg = RelocalizerConfig(period_s=4.0, delay_s=1.0)
+    reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+    online = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, relocalizer=reloc)
+    fixes = [a.fix for a in online.attempts if a.fix is not None]
+    replay = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, fixes=fixes)
+    assert [o.fix for o in replay.outcomes] == [o.fix for o in online.outcomes]
+    assert np.allclose(replay.final.T_world_base, online.final.T_world_base)
+
+
+def test_runner_rejects_bad_streams(stream):
+    with pytest.raises(RunnerError, match="empty"):
+        run_backend(DeadReckoning(stream.initial), [])
+    imu_free = [m for m in stream.measurements[:200] if type(m).__name__ != "ImuSample"]
+    with pytest.raises(RunnerError, match="IMU"):
+        run_backend(DeadReckoning(stream.initial), imu_free)
+    with pytest.raises(RunnerError, match="either"):
+        run_backend(DeadReckoning(stream.initial), stream.measurements, relocalizer=object(), fixes=[])
+
+
+def test_dead_reckoning_config_overrides_are_checked(stream):
+    from reloc.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="no_such_key"):
+        make_backend("dr", stream.initial, {"no_such_key": 1})
+    assert make_backend("dr", stream.initial, {"use_fixes": True}).config == DeadReckoningConfig(use_fixes=True)
+
+
+def test_successive_fixes_are_deweighted_for_their_shared_error(stream):
+    reloc = Relocalizer(stream.catalog, RelocalizerConfig(correlation_window_s=60.0, min_landmarks=5),
+                        matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+    be = make_backend("dr", stream.initial)
+    res = run_backend(be, stream.measurements[: len(stream.measurements) // 2])
+    lmap, est = be.landmark_map(), be.estimate()
+    a1 = reloc.attempt(lmap, est)
+    a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
+    a3 = reloc.attempt(lmap, PoseEstimate(est.t + 100.0, est.T_world_base, est.cov))
+    assert a1.fix is not None and a2.fix is not None and a3.fix is not None
+    assert np.allclose(a2.fix.cov_xyyaw, 2.0 * a1.fix.cov_xyyaw)  # one fix in the window before
+    assert np.allclose(a3.fix.cov_xyyaw, a1.fix.cov_xyyaw)  # the window has passed
+    del res
+
+
+def test_similarity_covariance_is_propagated_to_the_fix():
+    est = _pose(4.0, -3.0, 0.5)
+    a, tr, s = 0.2, np.array([1.0, 2.0]), 1.01
+    C4 = np.diag([0.01, 0.02, 1e-4, 1e-5])
+    cfg = RelocalizerConfig(inflation=1.0, sigma_floor_m=0.0, sigma_yaw_floor_rad=0.0)
+    inl = np.random.default_rng(1).normal(size=(10, 2))
+    fix = fix_from_similarity(est, a, tr, s, inl, 0.05, cfg, 11.0, similarity_cov=C4)
+
+    def f(p):  # (tx, ty, theta, scale) -> (x, y, yaw)
+        c, si = np.cos(p[2]), np.sin(p[2])
+        xy = p[3] * np.array([[c, -si], [si, c]]) @ est.position_m[:2] + p[:2]
+        return np.array([xy[0], xy[1], est.yaw_rad + p[2]])
+
+    p0 = np.array([tr[0], tr[1], a, s])
+    J = np.column_stack([(f(p0 + h) - f(p0 - h)) / 2e-6 for h in np.eye(4) * 1e-6])
+    assert np.allclose(fix.cov_xyyaw, J @ C4 @ J.T, rtol=1e-5, atol=1e-12)
+    assert np.allclose(fix.xyyaw, f(p0))
