@@ -69,3 +69,21 @@ def test_write_outputs_catalog_reads_back_with_the_fgslam_reader(tmp_path):
     world = yaml.safe_load(paths["world.yaml"].read_text())
     assert world["stats"]["n_catalog"] == len(cat)
     assert world["orbital_gsd_m"] == 0.2
+
+
+def test_cli_sim_image_detections_path(tmp_path):
+    """--detections image: /rocks and the catalog come from rendering + the shipped ONNX detectors."""
+    from fgslam.cli import main
+    from fgslam.io.bag_reader import read_bag
+    from fgslam.io.catalog_csv import read_catalog_csv
+    from reloc.measurements import RockObservations
+
+    out = tmp_path / "img"
+    rc = main(["sim", "--world", "cnes", "--seed", "0", "--distance-m", "3",
+               "--detections", "image", "--image-rate-hz", "0.5", "--out", str(out)])
+    assert rc == 0
+    frames = read_bag(out / "bag").of_type(RockObservations)
+    assert len(frames) >= 5 and sum(len(f) for f in frames) > 0
+    assert len(read_catalog_csv(out / "catalog.csv")) > 10
+    assert main(["sim", "--world", "cnes", "--distance-m", "3", "--detections", "pixels",
+                 "--out", str(tmp_path / "bad")]) != 0

@@ -46,13 +46,12 @@ def main(argv: list[str] | None = None) -> int:
     except _error_types() as exc:
         sys.stderr.write(f"fgslam: error: {exc}\n")
         return 2
-    except Exception as exc:  # click usage errors in non-standalone mode
-        import click
-
-        if isinstance(exc, click.ClickException):
+    except Exception as exc:  # usage errors from click, or from the click that typer vendors
+        names = {cls.__name__ for cls in type(exc).__mro__}
+        if "ClickException" in names:
             exc.show()
-            return exc.exit_code
-        if isinstance(exc, click.exceptions.Abort):
+            return int(exc.exit_code)
+        if "Abort" in names:
             sys.stderr.write("fgslam: aborted\n")
             return 1
         raise

@@ -44,6 +44,13 @@ def sim_cmd(
     distance_m: float | None = typer.Option(None, "--distance-m", help="Traverse length in metres (default: the preset's)."),
     config: Path | None = typer.Option(None, "--config", help="YAML overrides of the simulator config (see docs/sim.md)."),
     overwrite: bool = typer.Option(True, "--overwrite/--no-overwrite", help="Replace an existing bag in OUT."),
+    detections: str = typer.Option(
+        "statistical", "--detections",
+        help="statistical (sensor models) | image (render + ONNX detectors, ~0.75 s per stereo frame).",
+    ),
+    image_rate_hz: float | None = typer.Option(
+        None, "--image-rate-hz", help="Stereo frame rate of the image path (default: the stereo rate)."
+    ),
 ) -> None:
     """Simulate a rover traverse and write a ROS 2 bag, the orbital catalog and the world files."""
     import time
@@ -57,6 +64,8 @@ def sim_cmd(
     from sim.outputs import write_outputs
     from sim.simulate import simulate
 
+    if detections not in ("statistical", "image"):
+        raise typer.BadParameter(f"--detections must be 'statistical' or 'image', got {detections!r}")
     console = Console(stderr=True)
     t0 = time.perf_counter()
     cfg = load_sim_config(world, seed, distance_m, config)
@@ -64,6 +73,11 @@ def sim_cmd(
                   console=console, transient=True) as progress:
         task = progress.add_task(f"simulating {world} (seed {seed})", total=3)
         run = simulate(cfg)
+        if detections == "image":
+            from sim.image_detections import ImageDetectionConfig, with_image_detections
+
+            progress.update(task, description="rendering stereo/orbital images and detecting rocks")
+            run = with_image_detections(run, ImageDetectionConfig(rate_hz=image_rate_hz))
         progress.update(task, advance=1, description="writing bag")
         out.mkdir(parents=True, exist_ok=True)
         summary = write_bag(out / "bag", run.measurements, overwrite=overwrite)

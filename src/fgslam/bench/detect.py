@@ -1,0 +1,233 @@
+"""``fgslam bench detect``: detector quality in the shape of the reference Table I, and timings.
+
+Quality on held-out rendered worlds (the ``eval`` seed stream of :mod:`sim.datasets`, never used
+in training): precision and recall at the model's operating score threshold (IoU >= 0.5), AP at
+IoU 0.5 (mAP50) and averaged over IoU 0.50:0.05:0.95 (mAP50-95), 101-point interpolated as in
+COCO. A detection matched to no true box but overlapping an *ignore* box (a rock too small to
+label, see :mod:`sim.datasets`) counts neither way. Timings: inference per image with one
+onnxruntime thread, nadir tile and stereo pair rendering.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from reloc.detector.boxes import iou_matrix
+
+IOUS = np.round(np.arange(0.5, 0.96, 0.05), 2)
+REFERENCE = {"nadir": dict(precision=0.440, recall=0.364, map50=0.379), "rover": dict(precision=0.744, recall=0.692, map50=0.737)}
+GOALS = {"nadir": dict(precision=0.8, recall=0.7), "rover": dict(precision=0.9, recall=0.85)}
+
+
+def match_image(boxes: np.ndarray, score: np.ndarray, gt: np.ndarray, ignore: np.ndarray, iou_thr: float) -> np.ndarray:
+    """Per detection (N,): 1 true positive, 0 false positive, -1 ignored; greedy by score."""
+    order = np.argsort(-score, kind="stable")
+    out = np.zeros(len(score), dtype=np.int8)
+    iou = iou_matrix(boxes, gt) if len(gt) else np.zeros((len(boxes), 0))
+    taken = np.zeros(len(gt), dtype=bool)
+    if len(ignore):
+        b = np.reshape(boxes, (-1, 4))
+        g = np.reshape(ignore, (-1, 4))
+        iw = np.clip(np.minimum(b[:, None, 2], g[None, :, 2]) - np.maximum(b[:, None, 0], g[None, :, 0]), 0, None)
+        ih = np.clip(np.minimum(b[:, None, 3], g[None, :, 3]) - np.maximum(b[:, None, 1], g[None, :, 1]), 0, None)
+        area = np.maximum((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]), 1e-9)
+        on_ignore = (iw * ih / area[:, None]).max(axis=1) >= 0.3
+    else:
+        on_ignore = np.zeros(len(score), dtype=bool)
+    for k in order:
+        if len(gt):
+            cand = np.where(taken, -1.0, iou[k])
+            j = int(np.argmax(cand))
+            if cand[j] >= iou_thr:
+                taken[j] = True
+                out[k] = 1
+                continue
+        out[k] = -1 if on_ignore[k] else 0
+    return out
+
+
+def average_precision(scores: np.ndarray, tp: np.ndarray, n_gt: int) -> float:
+    """COCO 101-point interpolated AP of detections with ``scores`` (N,) and ``tp`` (N,) in {0, 1}."""
+    if n_gt == 0:
+        return float("nan")
+    if len(scores) == 0:
+        return 0.0
+    order = np.argsort(-scores, kind="stable")
+    t = tp[order].astype(float)
+    ctp, cfp = np.cumsum(t), np.cumsum(1 - t)
+    rec = ctp / n_gt
+    prec = ctp / np.maximum(ctp + cfp, 1e-12)
+    prec = np.maximum.accumulate(prec[::-1])[::-1] if len(prec) else prec
+    grid = np.linspace(0, 1, 101)
+    idx = np.searchsorted(rec, grid, side="left")
+    return float(np.mean(np.where(idx < len(prec), prec[np.minimum(idx, len(prec) - 1)], 0.0)))
+
+
+@dataclass
+class Quality:
+    precision: float
+    recall: float
+    map50: float
+    map50_95: float
+    n_images: int
+    n_true: int
+    n_detections: int
+    score_threshold: float
+
+
+def evaluate(dets: list, labels: list, score_threshold: float) -> Quality:
+    """Quality of per-image detections (``Detections``, run at a low threshold) against per-image
+    ``BoxLabels``; precision/recall at ``score_threshold``, APs over the whole score range."""
+    n_gt = sum(int(np.sum(~lab.ignore)) for lab in labels)
+    aps = []
+    p = r = 0.0
+    n_op = 0
+    for thr in IOUS:
+        scores, tps = [], []
+        for d, lab in zip(dets, labels):
+            m = match_image(d.boxes_xyxy, d.score, lab.boxes_xyxy[~lab.ignore], lab.boxes_xyxy[lab.ignore], thr)
+            scores.append(d.score[m >= 0])
+            tps.append(m[m >= 0])
+        s, t = np.concatenate(scores), np.concatenate(tps)
+        aps.append(average_precision(s, t, n_gt))
+        if thr == 0.5:
+            op = s >= score_threshold
+            n_op = int(op.sum())
+            p = float(t[op].sum() / max(n_op, 1))
+            r = float(t[op].sum() / max(n_gt, 1))
+    return Quality(p, r, aps[0], float(np.mean(aps)), len(labels), n_gt, n_op, score_threshold)
+
+
+def pick_threshold(dets: list, labels: list, target_precision: float) -> float:
+    """Score threshold with the highest recall at precision >= ``target_precision`` (IoU 0.5);
+    the F1-best threshold when no threshold reaches that precision."""
+    n_gt = sum(int(np.sum(~lab.ignore)) for lab in labels)
+    scores, tps = [], []
+    for d, lab in zip(dets, labels):
+        m = match_image(d.boxes_xyxy, d.score, lab.boxes_xyxy[~lab.ignore], lab.boxes_xyxy[lab.ignore], 0.5)
+        scores.append(d.score[m >= 0])
+        tps.append(m[m >= 0])
+    s, t = np.concatenate(scores), np.concatenate(tps)
+    order = np.argsort(-s, kind="stable")
+    s, t = s[order], t[order].astype(float)
+    ctp = np.cumsum(t)
+    prec = ctp / np.arange(1, len(t) + 1)
+    rec = ctp / max(n_gt, 1)
+    if len(s) == 0:
+        return 0.3
+    ok = np.flatnonzero(prec >= target_precision)
+    k = ok[np.argmax(rec[ok])] if len(ok) else int(np.argmax(2 * prec * rec / np.maximum(prec + rec, 1e-12)))
+    return float(max(s[k], 0.05))
+
+
+@dataclass(frozen=True)
+class DetectBenchConfig:
+    """Held-out images per model, the seed of the eval worlds, timing repetitions."""
+
+    nadir_images: int = 24
+    rover_images: int = 40
+    seed: int = 0
+    timing_runs: int = 20
+    nadir_model: str | None = None
+    rover_model: str | None = None
+
+
+def _timed(fn: Callable, runs: int) -> float:
+    ts = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts))
+
+
+def run_detect_bench(cfg: DetectBenchConfig, progress: Callable[[str, int], Callable[[], None]] | None = None) -> dict:
+    """Quality and timing of both models; returns plain data (see :func:`result_rows`)."""
+    from pathlib import Path
+
+    from reloc.detector import DetectorConfig, RockDetector
+    from sim.datasets import nadir_samples, rover_samples
+
+    tick = progress or (lambda name, total: (lambda: None))
+    res: dict = {"config": cfg.__dict__.copy(), "models": {}}
+    for kind, n, gen, path in (("nadir", cfg.nadir_images, nadir_samples, cfg.nadir_model),
+                               ("rover", cfg.rover_images, rover_samples, cfg.rover_model)):
+        op = RockDetector(path, kind=kind)
+        low = RockDetector(path, kind=kind, config=DetectorConfig(score_threshold=0.05))
+        step = tick(f"{kind}: render + detect {n} held-out images", n)
+        dets, labels, render_s, samples = [], [], [], []
+        t0 = time.perf_counter()
+        for s in gen(n, cfg.seed, "eval"):
+            render_s.append(time.perf_counter() - t0)
+            dets.append(low.detect(s.image))
+            labels.append(s.labels)
+            if len(samples) < 3:
+                samples.append(s)
+            step()
+            t0 = time.perf_counter()
+        q = evaluate(dets, labels, op.score_threshold)
+        img = samples[0].image
+        infer_s = _timed(lambda: op.detect(img), cfg.timing_runs)
+        x = np.zeros((1, op.channels, op.input_size_wh[1], op.input_size_wh[0]), np.float32)
+        net_s = _timed(lambda: op.session.run(None, {op.input_name: x}), cfg.timing_runs)
+        entry = {"quality": q.__dict__, "infer_image_s": infer_s, "infer_network_s": net_s,
+                 "image_shape": list(img.shape), "input_size_wh": list(op.input_size_wh),
+                 "model": str(op.path), "model_mb": Path(op.path).stat().st_size / 1e6,
+                 "reference": REFERENCE[kind], "goal": GOALS[kind]}
+        if kind == "nadir":
+            from sim.render import Renderer
+
+            s = samples[0]
+            r = Renderer(s.world)
+            entry["render_tile_s"] = _timed(lambda: r.nadir(s.nadir.gsd_m, extent=s.nadir.extent), max(cfg.timing_runs // 4, 2))
+        else:
+            from reloc.stereo import sgbm_disparity
+            from sim.render import Renderer
+
+            s = samples[0]
+            r = Renderer(s.world)
+            sr = s.stereo
+            entry["render_stereo_pair_s"] = _timed(lambda: r.stereo(sr.T_world_left, sr.camera, sr.baseline_m), max(cfg.timing_runs // 4, 2))
+            entry["sgbm_s"] = _timed(lambda: sgbm_disparity(sr.left, sr.right), max(cfg.timing_runs // 4, 2))
+        res["models"][kind] = entry
+    return res
+
+
+def result_rows(res: dict) -> tuple[list[str], list[list[str]]]:
+    """Table I-style rows: model, P, R, mAP50, mAP50-95 (ours and the reference)."""
+    cols = ["model", "images", "true boxes", "precision", "recall", "mAP50", "mAP50-95", "threshold", "reference P / R / mAP50", "goal P / R"]
+    rows = []
+    for kind, e in res["models"].items():
+        q, ref, goal = e["quality"], e["reference"], e["goal"]
+        rows.append([kind, str(q["n_images"]), str(q["n_true"]), f"{q['precision']:.3f}", f"{q['recall']:.3f}",
+                     f"{q['map50']:.3f}", f"{q['map50_95']:.3f}", f"{q['score_threshold']:.2f}",
+                     f"{ref['precision']:.3f} / {ref['recall']:.3f} / {ref['map50']:.3f}",
+                     f"{goal['precision']:.2f} / {goal['recall']:.2f}"])
+    return cols, rows
+
+
+def timing_rows(res: dict) -> tuple[list[str], list[list[str]]]:
+    """Timing rows: inference (image and network alone), rendering, model size."""
+    cols = ["model", "image", "network input", "inference / image", "network alone", "render", "model size"]
+    rows = []
+    for kind, e in res["models"].items():
+        render = (f"tile {1e3 * e['render_tile_s']:.0f} ms" if "render_tile_s" in e
+                  else f"stereo pair {1e3 * e['render_stereo_pair_s']:.0f} ms (SGBM {1e3 * e['sgbm_s']:.0f} ms)")
+        rows.append([kind, "x".join(str(v) for v in e["image_shape"]), "x".join(str(v) for v in e["input_size_wh"]),
+                     f"{1e3 * e['infer_image_s']:.1f} ms", f"{1e3 * e['infer_network_s']:.1f} ms", render,
+                     f"{e['model_mb']:.2f} MB"])
+    return cols, rows
+
+
+def markdown(res: dict) -> str:
+    """Both tables as Markdown."""
+    out = []
+    for title, (cols, rows) in (("Detector quality (held-out rendered worlds)", result_rows(res)), ("Timings (one thread)", timing_rows(res))):
+        out += [f"### {title}", "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        out += ["| " + " | ".join(r) + " |" for r in rows]
+        out.append("")
+    return "\n".join(out)

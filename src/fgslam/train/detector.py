@@ -1,0 +1,250 @@
+"""Train a rock detector on rendered images of procedurally varied worlds and export it to ONNX.
+
+    python -m fgslam.train --kind nadir --images 160 --iters 3000 --out src/reloc/models/rocks_nadir.onnx
+
+The data set is rendered first (``sim.datasets``; cached to ``--cache`` when given), then the
+network of :mod:`fgslam.train.model` is trained on random crops with flips, rotations (nadir) and
+photometric jitter, with AdamW and a cosine learning rate. Runs on CUDA when available, else on
+CPU with ``--threads`` threads. The exported graph takes (1, 1, H, W) float in [0, 1] with
+dynamic H, W (multiples of 16) and returns (1, 5, H/4, W/4); its metadata names the layout, the
+stride and the input size the runtime letterboxes to.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+INPUT_SIZE = {"nadir": (640, 640), "rover": (640, 368)}  # (W, H) the runtime letterboxes to
+OUT_STRIDE = {"nadir": 2, "rover": 4}  # nadir rocks are a few pixels across
+
+
+def render_set(kind: str, n: int, seed: int, split: str = "train"):
+    """Rendered (images list of (H, W) uint8, positive boxes list of (P, 4), ignore boxes list)."""
+    from sim.datasets import nadir_samples, rover_samples
+
+    gen = nadir_samples(n, seed, split) if kind == "nadir" else rover_samples(n, seed, split)
+    images, pos, ign = [], [], []
+    for s in gen:
+        images.append(s.image)
+        pos.append(s.labels.boxes_xyxy[~s.labels.ignore])
+        ign.append(s.labels.boxes_xyxy[s.labels.ignore])
+    return images, pos, ign
+
+
+def save_set(path: Path, images, pos, ign) -> None:
+    """Cache a rendered set as one .npz."""
+    np.savez_compressed(path, n=len(images), **{f"img{k}": im for k, im in enumerate(images)},
+                        **{f"pos{k}": p for k, p in enumerate(pos)}, **{f"ign{k}": g for k, g in enumerate(ign)})
+
+
+def load_set(path: Path):
+    """Read a set written by :func:`save_set`."""
+    z = np.load(path)
+    n = int(z["n"])
+    return [z[f"img{k}"] for k in range(n)], [z[f"pos{k}"] for k in range(n)], [z[f"ign{k}"] for k in range(n)]
+
+
+def _crop(img, pos, ign, crop: int, rng: np.random.Generator, rotate: bool):
+    """A random crop x crop window with augmentation; boxes cut to less than half become ignore."""
+    H, W = img.shape
+    if H < crop or W < crop:
+        pad = np.zeros((max(H, crop), max(W, crop)), np.uint8)
+        pad[:H, :W] = img
+        img, H, W = pad, max(H, crop), max(W, crop)
+    y0, x0 = int(rng.integers(0, H - crop + 1)), int(rng.integers(0, W - crop + 1))
+    im = img[y0:y0 + crop, x0:x0 + crop].astype(np.float32)
+    off = np.array([x0, y0, x0, y0], np.float32)
+
+    def clip(b):
+        b = np.reshape(b, (-1, 4)) - off
+        c = np.clip(b, 0, crop)
+        area = np.maximum(b[:, 2] - b[:, 0], 0) * np.maximum(b[:, 3] - b[:, 1], 0)
+        carea = np.maximum(c[:, 2] - c[:, 0], 0) * np.maximum(c[:, 3] - c[:, 1], 0)
+        return c, carea / np.maximum(area, 1e-6)
+
+    p, pf = clip(pos)
+    g, gf = clip(ign)
+    keep = pf >= 0.5
+    ign_all = np.vstack([g[gf > 0], p[(pf > 0) & ~keep]])
+    p = p[keep]
+    if rng.random() < 0.5:  # horizontal flip
+        im = im[:, ::-1]
+        p = np.column_stack([crop - p[:, 2], p[:, 1], crop - p[:, 0], p[:, 3]])
+        ign_all = np.column_stack([crop - ign_all[:, 2], ign_all[:, 1], crop - ign_all[:, 0], ign_all[:, 3]])
+    if rotate:
+        for _ in range(int(rng.integers(0, 4))):  # 90-degree turns (counter-clockwise)
+            im = np.rot90(im)
+            p = np.column_stack([p[:, 1], crop - p[:, 2], p[:, 3], crop - p[:, 0]])
+            ign_all = np.column_stack([ign_all[:, 1], crop - ign_all[:, 2], ign_all[:, 3], crop - ign_all[:, 0]])
+    gain, bias, gamma = rng.uniform(0.7, 1.3), rng.uniform(-25, 25), rng.uniform(0.8, 1.25)
+    im = 255.0 * (np.clip(im * gain + bias, 0, 255) / 255.0) ** gamma
+    im = im + rng.uniform(0, 4) * rng.standard_normal(im.shape)
+    return np.clip(im, 0, 255) / 255.0, p, ign_all
+
+
+def train(kind: str, images, pos, ign, *, iters: int, batch: int, crop: int, lr: float, seed: int,
+          device: str, init: Path | None = None, budget_s: float | None = None, log_every: int = 50):
+    """Train a :class:`RockNet` for ``iters`` steps, or as many as fit in ``budget_s`` seconds
+    (measured over the first 20 steps); returns the model (eval mode, on CPU) and the loss history."""
+    import torch
+
+    from fgslam.train.model import RockNet
+    from fgslam.train.targets import detector_loss, make_targets
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng([seed, 5])
+    stride = OUT_STRIDE[kind]
+    net = RockNet(out_stride=stride)
+    if init is not None:
+        net.load_state_dict(torch.load(init, map_location="cpu"))
+    net = net.to(device)
+    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
+    plan = {"iters": iters, "warm": max(iters // 20, 1) if budget_s is None else 20}
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda k: min((k + 1) / plan["warm"], 0.5 * (1 + np.cos(np.pi * min(k / plan["iters"], 1.0)))) + 0.01)
+    history = []
+    t0 = time.perf_counter()
+    net.train()
+    it = 0
+    while it < plan["iters"]:
+        if budget_s is not None and it == 20:
+            per_it = (time.perf_counter() - t0) / 20
+            plan["iters"] = max(int(budget_s / per_it), 21)
+            log.info("%.2f s per step: %d steps fit in %.0f s", per_it, plan["iters"], budget_s)
+        xs, tg = [], []
+        for _ in range(batch):
+            k = int(rng.integers(len(images)))
+            im, p, g = _crop(images[k], pos[k], ign[k], crop, rng, rotate=kind == "nadir")
+            xs.append(im)
+            tg.append(make_targets(p, g, crop, crop, stride))
+        x = torch.from_numpy(np.stack(xs)[:, None].astype(np.float32)).to(device)
+        t = {key: torch.from_numpy(np.stack([d[key] for d in tg])).to(device) for key in tg[0]}
+        out = net(x)
+        loss, parts = detector_loss(out, t["heat"], t["weight"], t["reg"], t["mask"])
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+        opt.step()
+        sched.step()
+        history.append(float(loss))
+        if (it + 1) % log_every == 0 or it == 0:
+            log.info("%s iter %d/%d loss %.3f (heat %.3f off %.3f size %.3f) %.0f s", kind, it + 1, plan["iters"],
+                     float(loss), parts["heat"], parts["off"], parts["size"], time.perf_counter() - t0)
+        it += 1
+    return net.cpu().eval(), history
+
+
+def export_onnx(net, kind: str, path: Path, info: dict) -> None:
+    """Export ``net`` to ``path`` (opset 17, dynamic H/W) with the runtime's metadata."""
+    import onnx
+    import torch
+
+    from fgslam.train.model import ExportWrapper
+
+    W, H = INPUT_SIZE[kind]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.onnx.export(ExportWrapper(net).eval(), (torch.zeros(1, 1, H, W),), str(path), dynamo=False,
+                      input_names=["images"], output_names=["centernet"], opset_version=17,
+                      dynamic_axes={"images": {2: "height", 3: "width"}, "centernet": {2: "h_out", 3: "w_out"}})
+    model = onnx.load(str(path))
+    meta = {"fgslam_layout": "centernet-v1", "stride": str(net.out_stride), "input_size": f"{W},{H}", "kind": kind,
+            "class_names": "rock", "train_info": json.dumps(info)}
+    del model.metadata_props[:]
+    for k, v in meta.items():
+        model.metadata_props.add(key=k, value=v)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+
+
+def set_metadata(path: Path, **items: str) -> None:
+    """Add or replace metadata entries of the ONNX model at ``path``."""
+    import onnx
+
+    model = onnx.load(str(path))
+    meta = {p.key: p.value for p in model.metadata_props}
+    meta.update(items)
+    del model.metadata_props[:]
+    for k, v in meta.items():
+        model.metadata_props.add(key=k, value=v)
+    onnx.save(model, str(path))
+
+
+def calibrate_threshold(path: Path, kind: str, n: int, seed: int, target_precision: float) -> float:
+    """Pick the operating score threshold on ``n`` rendered validation images and store it in the
+    model's metadata (``score_threshold``)."""
+    from fgslam.bench.detect import pick_threshold
+    from reloc.detector import DetectorConfig, RockDetector
+    from sim.datasets import nadir_samples, rover_samples
+
+    det = RockDetector(path, kind=kind, config=DetectorConfig(score_threshold=0.05))
+    gen = nadir_samples(n, seed, "val") if kind == "nadir" else rover_samples(n, seed, "val")
+    dets, labels = [], []
+    for s in gen:
+        dets.append(det.detect(s.image))
+        labels.append(s.labels)
+    thr = pick_threshold(dets, labels, target_precision)
+    set_metadata(path, score_threshold=f"{thr:.4f}")
+    return thr
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line of ``python -m fgslam.train``."""
+    ap = argparse.ArgumentParser(prog="python -m fgslam.train", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--kind", choices=("nadir", "rover"), required=True)
+    ap.add_argument("--images", type=int, default=160, help="rendered training images")
+    ap.add_argument("--iters", type=int, default=3000)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--crop", type=int, default=256)
+    ap.add_argument("--minutes", type=float, default=None, help="train for this long instead of --iters")
+    ap.add_argument("--lr", type=float, default=3e-3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=1, help="CPU threads (ignored on CUDA)")
+    ap.add_argument("--cache", type=Path, default=None, help=".npz cache of the rendered set")
+    ap.add_argument("--render-only", action="store_true", help="only render the set into --cache")
+    ap.add_argument("--init", type=Path, default=None, help="start from these weights (.pt)")
+    ap.add_argument("--val-images", type=int, default=12, help="rendered validation images for the threshold")
+    ap.add_argument("--target-precision", type=float, default=None, help="operating precision (default: nadir 0.85, rover 0.92)")
+    ap.add_argument("--weights", type=Path, default=None, help="also save the trained weights (.pt) here")
+    ap.add_argument("--out", type=Path, required=True, help="ONNX file to write")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    t0 = time.perf_counter()
+    if args.cache is not None and args.cache.is_file():
+        images, pos, ign = load_set(args.cache)
+    else:
+        images, pos, ign = render_set(args.kind, args.images, args.seed)
+        if args.cache is not None:
+            save_set(args.cache, images, pos, ign)
+    t_render = time.perf_counter() - t0
+    log.info("%d images, %d rock boxes, rendered in %.0f s", len(images), sum(len(p) for p in pos), t_render)
+    if args.render_only:
+        return 0
+    t1 = time.perf_counter()
+    net, hist = train(args.kind, images, pos, ign, iters=args.iters, batch=args.batch, crop=args.crop,
+                      lr=args.lr, seed=args.seed, device=device, init=args.init,
+                      budget_s=None if args.minutes is None else 60.0 * args.minutes)
+    t_train = time.perf_counter() - t1
+    info = {"images": len(images), "iters": len(hist), "batch": args.batch, "crop": args.crop, "seed": args.seed,
+            "device": device, "threads": args.threads, "data_s": round(t_render, 1),
+            "train_s": round(t_train, 1), "final_loss": round(float(np.mean(hist[-50:])), 4)}
+    if args.weights is not None:
+        torch.save(net.state_dict(), args.weights)
+    export_onnx(net, args.kind, args.out, info)
+    target = args.target_precision or (0.85 if args.kind == "nadir" else 0.92)
+    if args.val_images > 0:
+        thr = calibrate_threshold(args.out, args.kind, args.val_images, args.seed, target)
+        log.info("score threshold %.3f (target precision %.2f on %d validation images)", thr, target, args.val_images)
+    log.info("wrote %s (%.2f MB): %s", args.out, args.out.stat().st_size / 1e6, json.dumps(info))
+    return 0
