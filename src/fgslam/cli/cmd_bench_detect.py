@@ -21,11 +21,10 @@ def bench_detect_cmd(
     out: Optional[Path] = typer.Option(None, "--out", help="Directory for results.json and table.md."),
 ) -> None:
     """Precision, recall, mAP50, mAP50-95 of the nadir and rover detectors, inference and render timings."""
-    import json
 
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
+
+    from fgslam.cli.bench_output import print_tables, progress_ticks, write_results
 
     from fgslam.bench.detect import DetectBenchConfig, markdown, result_rows, run_detect_bench, timing_rows
 
@@ -34,24 +33,13 @@ def bench_detect_cmd(
         timing_runs=5 if quick else 20, nadir_model=None if nadir_model is None else str(nadir_model),
         rover_model=None if rover_model is None else str(rover_model))
     err = Console(stderr=True)
-    with Progress(TextColumn("{task.description:<45}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=err) as progress:
-        def tick(name: str, total: int):
-            task = progress.add_task(name, total=total)
-            return lambda: progress.advance(task)
-
+    with progress_ticks(err, label_width=45) as tick:
         res = run_detect_bench(cfg, progress=tick)
-    console = Console(width=max(Console().width, 160))
-    for title, (cols, rows) in (("Rock detectors on held-out rendered worlds", result_rows(res)),
-                                ("Timings (onnxruntime, 1 thread)", timing_rows(res))):
-        table = Table(title=title)
-        for c in cols:
-            table.add_column(c, justify="right")
-        for r in rows:
-            table.add_row(*r)
-        console.print(table)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "results.json").write_text(json.dumps(res, indent=2, default=float))
-        (out / "table.md").write_text(markdown(res))
-        err.print(f"wrote {out / 'results.json'} and {out / 'table.md'}")
+    print_tables(
+        [
+            ("Rock detectors on held-out rendered worlds", *result_rows(res)),
+            ("Timings (onnxruntime, 1 thread)", *timing_rows(res)),
+        ],
+        width=160,
+    )
+    write_results(out, res, markdown(res), err)

@@ -34,11 +34,10 @@ def bench_match_cmd(
 ) -> None:
     """Success, false matches, accuracy, speed and index build of the matcher (tables on stdout)."""
     import dataclasses
-    import json
 
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
+
+    from fgslam.cli.bench_output import print_tables, progress_ticks, write_results
 
     from fgslam.bench.match import (
         MatchBenchConfig,
@@ -57,23 +56,7 @@ def bench_match_cmd(
     }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     err = Console(stderr=True)
-    with Progress(TextColumn("{task.description:<40}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=err) as progress:
-        def tick(name: str, total: int):
-            task = progress.add_task(name, total=total)
-            return lambda: progress.advance(task)
-
+    with progress_ticks(err, label_width=40) as tick:
         res = run_match_bench(cfg, progress=tick)
-    console = Console(width=max(Console().width, 220))
-    for title, cols, rows in result_tables(res):
-        table = Table(title=title)
-        for c in cols:
-            table.add_column(c, justify="right")
-        for r in rows:
-            table.add_row(*r)
-        console.print(table)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "results.json").write_text(json.dumps(res, indent=2, default=float))
-        (out / "table.md").write_text(tables_markdown(res))
-        err.print(f"wrote {out / 'results.json'} and {out / 'table.md'}")
+    print_tables(result_tables(res), width=220)
+    write_results(out, res, tables_markdown(res), err)

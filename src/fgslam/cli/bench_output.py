@@ -1,0 +1,48 @@
+"""Output shared by the ``fgslam bench`` commands: progress ticks, rich tables, results files."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+Tick = Callable[[str, int], Callable[[], None]]
+
+
+@contextlib.contextmanager
+def progress_ticks(err: Console, label_width: int = 45) -> Iterator[Tick]:
+    """Yield ``tick(name, total) -> advance()``: one progress bar per benchmark stage, on ``err``."""
+    with Progress(TextColumn(f"{{task.description:<{label_width}}}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=err) as progress:
+        def tick(name: str, total: int) -> Callable[[], None]:
+            task = progress.add_task(name, total=total)
+            return lambda: progress.advance(task)
+
+        yield tick
+
+
+def print_tables(tables: Iterable[tuple[str, Sequence[str], Sequence[Sequence[str]]]], width: int) -> None:
+    """Print (title, columns, rows) tables on stdout, right-aligned, at least ``width`` wide."""
+    console = Console(width=max(Console().width, width))
+    for title, cols, rows in tables:
+        table = Table(title=title)
+        for c in cols:
+            table.add_column(c, justify="right")
+        for r in rows:
+            table.add_row(*r)
+        console.print(table)
+
+
+def write_results(out: Path | None, results: dict, markdown: str, err: Console) -> None:
+    """Write ``out/results.json`` and ``out/table.md`` when ``out`` is given."""
+    if out is None:
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
+    (out / "table.md").write_text(markdown)
+    err.print(f"wrote {out / 'results.json'} and {out / 'table.md'}")
