@@ -8,6 +8,11 @@ the logistic's offset is solved so the mean probability over all visible rocks e
 configured recall. Positions get stereo noise (depth sigma = z^2 * sigma_disp / (f * baseline),
 lateral sigma = z * sigma_px / f), reported with their covariance in base_link. False positives
 (clutter on the terrain) are added so that true / all detections equals the configured precision.
+
+Systematic errors (see :class:`sim.config.StereoConfig`): the near-surface bias of each rock's
+centroid (along the line of sight, a per-rock fraction of its radius), a per-run rotation error
+of the camera mounting and a per-run depth scale error. They do not average out over frames,
+which is what makes a real SLAM map drift and distort; white noise alone would not.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 from sim.config import StereoConfig
+from sim.errors import SimError
 from sim.world import World
 
 RAY_CHUNK = 400_000
@@ -44,6 +50,55 @@ class StereoCamera:
         T[:3, :3] = Ry @ R0
         T[:3, 3] = cfg.mount_xyz_m
         return StereoCamera(cfg.width_px, cfg.height_px, float(f), T)
+
+
+@dataclass(frozen=True)
+class StereoBias:
+    """Systematic errors of one run: ``surface_frac`` (R,) per rock (fraction of its radius the
+    centroid sits towards the camera), ``R_cam_err`` (3, 3) the true camera rotation relative to
+    the nominal mounting (optical frame), ``depth_scale`` the measured / true range ratio."""
+
+    surface_frac: np.ndarray
+    R_cam_err: np.ndarray
+    depth_scale: float
+
+    @staticmethod
+    def draw(n_rocks: int, cfg: StereoConfig, rng: np.random.Generator) -> StereoBias:
+        """Seeded draw of the run's systematic errors (no draw, so the stream of ``rng`` is untouched,
+        when all three are off)."""
+        terms = {"surface_bias_frac": cfg.surface_bias_frac, "extrinsic_sigma_deg": cfg.extrinsic_sigma_deg,
+                 "depth_scale_sigma": cfg.depth_scale_sigma}
+        bad = [f"{k}={v}" for k, v in terms.items() if not (np.isfinite(v) and v >= 0)]
+        if bad:
+            raise SimError(f"stereo systematic error settings must be finite and >= 0: {', '.join(bad)}")
+        if not any(terms.values()):
+            return StereoBias(np.zeros(n_rocks), np.eye(3), 1.0)
+        frac = rng.uniform(0.0, 2.0 * cfg.surface_bias_frac, n_rocks)
+        ang = np.deg2rad(cfg.extrinsic_sigma_deg) * rng.standard_normal(3)
+        scale = 1.0 + cfg.depth_scale_sigma * rng.standard_normal()
+        return StereoBias(frac, _rotvec_matrix(ang), float(scale))
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of the rotation vector ``w`` (3,) (Rodrigues)."""
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    k = w / th
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * K @ K
+
+
+def biased_points(pc: np.ndarray, radius_m: np.ndarray, frac: np.ndarray, bias: StereoBias) -> np.ndarray:
+    """Where stereo puts rock centres ``pc`` (M, 3) (nominal camera frame) before white noise:
+    pulled towards the camera by ``frac * radius_m`` (M,), seen through the mis-mounted camera
+    and scaled in range. Returns (M, 3) in the nominal camera frame."""
+    rng_m = np.linalg.norm(pc, axis=1, keepdims=True)
+    u = pc / np.maximum(rng_m, 1e-9)
+    near = pc - (frac * radius_m)[:, None] * u
+    # the real camera is R_err-rotated from the nominal one: it sees R_err^T p; the pipeline
+    # reports that as if it were taken in the nominal frame
+    return bias.depth_scale * near @ bias.R_cam_err
 
 
 @dataclass(frozen=True)
@@ -137,10 +192,13 @@ def detection_probability(apparent_px: np.ndarray, recall: float, log_slope: flo
     return 1.0 / (1.0 + np.exp(-(a + x)))
 
 
-def _stereo_cov_cam(pc: np.ndarray, cam: StereoCamera, cfg: StereoConfig) -> np.ndarray:
-    """Camera-frame covariance (M, 3, 3): depth variance along the line of sight, lateral across."""
+def _stereo_cov_cam(pc: np.ndarray, cam: StereoCamera, cfg: StereoConfig, sigma_extra_m: np.ndarray | None = None) -> np.ndarray:
+    """Camera-frame covariance (M, 3, 3): depth variance along the line of sight (plus
+    ``sigma_extra_m`` (M,) there, the reported surface uncertainty), lateral across."""
     z = np.maximum(pc[:, 2], 0.1)
     s_r = z**2 * cfg.sigma_disparity_px / (cam.f_px * cfg.baseline_m)
+    if sigma_extra_m is not None:
+        s_r = np.sqrt(s_r**2 + sigma_extra_m**2)
     s_l = z * cfg.sigma_pixel_px / cam.f_px
     u = pc / np.linalg.norm(pc, axis=1, keepdims=True)
     return s_l[:, None, None] ** 2 * np.eye(3) + (s_r**2 - s_l**2)[:, None, None] * np.einsum("mi,mj->mij", u, u)
@@ -151,6 +209,7 @@ def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, r
     cam = StereoCamera.from_config(cfg)
     F = len(T_world_base)
     rocks = world.rocks
+    bias = StereoBias.draw(len(rocks), cfg, rng)
     fr, rk = visible_rocks(world, T_world_base, cfg)
     T_wc = T_world_base @ cam.T_base_cam
     pc = np.einsum("mji,mj->mi", T_wc[fr, :3, :3], rocks.xyz_m[rk] - T_wc[fr, :3, 3])
@@ -164,9 +223,15 @@ def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, r
     pts = np.vstack([pc[det], fp_pc])
     lo, hi = np.log(cfg.fp_size_m[0]), np.log(cfg.fp_size_m[1])
     size_true = np.concatenate([rocks.size_m[rk[det]], np.exp(rng.uniform(lo, hi, len(fp_frame)))])
-    cov_c = _stereo_cov_cam(pts, cam, cfg) if len(pts) else np.zeros((0, 3, 3))
-    L = np.linalg.cholesky(cov_c) if len(pts) else cov_c
-    meas_c = pts + np.einsum("mij,mj->mi", L, rng.standard_normal(pts.shape)) if len(pts) else pts
+    radius = 0.5 * size_true
+    # clutter is a patch of terrain, not a rock with a hidden centre: no surface bias
+    frac = np.concatenate([bias.surface_frac[rk[det]], np.zeros(len(fp_frame))])
+    seen = biased_points(pts, radius, frac, bias) if len(pts) else pts
+    sigma_surface = cfg.surface_bias_frac * radius
+    cov_c = _stereo_cov_cam(seen, cam, cfg, sigma_surface) if len(pts) else np.zeros((0, 3, 3))
+    white = _stereo_cov_cam(seen, cam, cfg) if len(pts) else cov_c
+    L = np.linalg.cholesky(white) if len(pts) else white
+    meas_c = seen + np.einsum("mij,mj->mi", L, rng.standard_normal(pts.shape)) if len(pts) else pts
     Rbc, tbc = cam.T_base_cam[:3, :3], cam.T_base_cam[:3, 3]
     xyz_b = meas_c @ Rbc.T + tbc
     cov_b = np.einsum("ij,mjk,lk->mil", Rbc, cov_c, Rbc)

@@ -44,6 +44,14 @@ class FixGateConfig:
     # t_meas within this many seconds before it), so a burst of fixes is not counted as
     # independent information. 0 disables.
     correlation_s: float = 30.0
+    # Recovery of an overconfident filter: when the Mahalanobis gate has rejected consensus_n
+    # fixes within consensus_window_s whose innovations agree (every xy innovation within
+    # consensus_tol_m of their mean, yaw within consensus_tol_deg), the filter, not the fixes, is
+    # wrong: the pose covariance is inflated by the innovation and the fix applied. 0 disables.
+    consensus_n: int = 3
+    consensus_window_s: float = 30.0
+    consensus_tol_m: float = 0.3
+    consensus_tol_deg: float = 2.0
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,9 @@ class EkfSlam:
         self._count = {"n_predict": 0, "n_landmark_frames": 0, "n_fixes_accepted": 0, "n_fixes_rejected": 0,
                        "n_late_fixes": 0, "n_replayed_entries": 0, "n_attitude_updates": 0}
         self._reject_reasons: dict[str, int] = {}
+        self._count["n_consensus_resets"] = 0
+        self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
+        self._reset_Q: dict[tuple, np.ndarray] = {}  # inflation applied with each consensus fix (for replays)
         self._record()
         self._hist.checkpoint(self._s, len(self._traj_t))
 
@@ -249,14 +252,41 @@ class EkfSlam:
             return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
         S = H @ s.P[:POSE_DIM, :POSE_DIM] @ H.T + R_fix
         d2 = float(nu @ np.linalg.solve(S, nu))
-        if not force and not d2 <= gate.chi2:
-            return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {gate.chi2:.2f}", d2)
+        key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
+        if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again
+            s.P[:POSE_DIM, :POSE_DIM] += self._reset_Q[key]
+        elif not force and not d2 <= gate.chi2:
+            if not self._consensus(fix.t_meas, nu):
+                return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {gate.chi2:.2f}", d2)
+            # the rejected fixes agree with each other: open the pose covariance by the innovation
+            log.info("t_meas=%.1f s: %d consistent fixes rejected, pose covariance inflated by the innovation "
+                     "(%.2f m, %.1f deg)", fix.t_meas, gate.consensus_n, math.hypot(nu[0], nu[1]), math.degrees(nu[2]))
+            Q = np.zeros((POSE_DIM, POSE_DIM))
+            Q[0, 0], Q[1, 1], Q[5, 5] = nu[0] ** 2, nu[1] ** 2, nu[2] ** 2
+            s.P[:POSE_DIM, :POSE_DIM] += Q
+            self._reset_Q[key] = Q
+            self._gate_rejects.clear()
+            self._count["n_consensus_resets"] += 1
         s.P, res = joseph_update(s.P, np.arange(POSE_DIM), H, nu, R_fix)
         s.inject(res.dx)
         horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
         s.fix_times = tuple(t for t in s.fix_times if t >= horizon) + (fix.t_meas,)
         self._record()
         return FixOutcome(fix, True, "", d2)
+
+    def _consensus(self, t_meas: float, nu: np.ndarray) -> bool:
+        """Record a Mahalanobis rejection; True when it completes a consistent set (see FixGateConfig)."""
+        gate = self.config.fix_gate
+        if gate.consensus_n <= 0:
+            return False
+        self._gate_rejects = [(t, v) for t, v in self._gate_rejects if t >= t_meas - gate.consensus_window_s]
+        self._gate_rejects.append((t_meas, nu.copy()))
+        if len(self._gate_rejects) < gate.consensus_n:
+            return False
+        V = np.array([v for _, v in self._gate_rejects[-gate.consensus_n:]])
+        spread_xy = np.linalg.norm(V[:, :2] - V[:, :2].mean(axis=0), axis=1).max()
+        spread_yaw = np.abs(V[:, 2] - V[:, 2].mean()).max()
+        return bool(spread_xy <= gate.consensus_tol_m and math.degrees(spread_yaw) <= gate.consensus_tol_deg)
 
     def _apply_late(self, fix: GlobalFix) -> FixOutcome:
         """Roll back to the newest checkpoint at or before t_meas, replay to t_meas (splitting the

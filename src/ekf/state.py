@@ -17,6 +17,23 @@ from reloc.landmark_book import LandmarkBook
 POSE_DIM = 6
 
 
+def take_symmetric(P: np.ndarray, cols: np.ndarray, max_runs: int = 12) -> np.ndarray:
+    """``P[np.ix_(cols, cols)]`` for sorted ``cols``, copied as contiguous blocks when ``cols`` is a
+    few runs of consecutive indices (dropping a few landmarks): several times faster than fancy
+    indexing for a large ``P``."""
+    breaks = np.flatnonzero(np.diff(cols) != 1) + 1
+    if len(breaks) + 1 > max_runs:
+        return P[np.ix_(cols, cols)]
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [len(cols)]])
+    out = np.empty((len(cols), len(cols)), dtype=P.dtype)
+    for a0, a1 in zip(starts, stops):
+        ra = slice(cols[a0], cols[a1 - 1] + 1)
+        for b0, b1 in zip(starts, stops):
+            out[a0:a1, b0:b1] = P[ra, cols[b0]:cols[b1 - 1] + 1]
+    return out
+
+
 @dataclass
 class FilterState:
     """Mutable filter state; :meth:`copy` gives an independent snapshot (checkpoints)."""
@@ -109,6 +126,6 @@ class FilterState:
         if keep.all():
             return
         cols = np.concatenate([np.arange(POSE_DIM), self.landmark_cols(np.flatnonzero(keep))])
-        self.P = self.P[np.ix_(cols, cols)]
+        self.P = take_symmetric(self.P, cols)
         self.l_world = self.l_world[keep]
         self.book.keep(keep)

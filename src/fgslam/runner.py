@@ -18,6 +18,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -97,19 +98,37 @@ def _stack(records: list) -> Trajectory:
     )
 
 
+class FixFeed(Protocol):
+    """Fixes that arrive while a run goes on (a reference pass producing them concurrently)."""
+
+    def until(self, t: float) -> list[GlobalFix]:
+        """Every not yet returned fix with ``t_recv <= t`` (blocks until that set is known)."""
+
+    def rest(self) -> list[GlobalFix]:
+        """Every not yet returned fix (blocks until the producer has finished)."""
+
+
+FixSink = Callable[[str, object], None]  # ("fix", GlobalFix) for each new fix, ("time", t) as the stream advances
+
+
 def run_backend(
     backend: Backend,
     measurements: Iterable,
     *,
     relocalizer: Relocalizer | None = None,
     fixes: Sequence[GlobalFix] | None = None,
+    fix_feed: FixFeed | None = None,
+    fix_sink: FixSink | None = None,
     config: RunnerConfig | None = None,
     on_progress: Callable[[float], None] | None = None,
 ) -> RunResult:
-    """Run ``backend`` over ``measurements`` (time-ordered). Give ``relocalizer`` (online fixes) or
-    ``fixes`` (replayed at their ``t_recv``), or neither (no relocalization)."""
-    if relocalizer is not None and fixes is not None:
-        raise RunnerError("give either a relocalizer (online fixes) or a fix list (replay), not both")
+    """Run ``backend`` over ``measurements`` (time-ordered). Give ``relocalizer`` (online fixes),
+    ``fixes`` (replayed at their ``t_recv``) or ``fix_feed`` (the same, with the list still being
+    produced), or none of them (no relocalization). ``fix_sink`` is told of every online fix and,
+    about once per stream second, of how far the stream has got: no fix produced later can have
+    ``t_recv`` before that time, which is what lets a :class:`FixFeed` consumer run alongside."""
+    if sum(x is not None for x in (relocalizer, fixes, fix_feed)) > 1:
+        raise RunnerError("give one of a relocalizer (online fixes), a fix list or a fix feed (replay), not several")
     cfg = config or RunnerConfig()
     assembler = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s)
     pending: list[tuple[float, int, GlobalFix]] = []
@@ -127,6 +146,9 @@ def run_backend(
     t_first = t_last = None
     next_record = next_attempt = None
     n_predict = 0
+    fed: list[GlobalFix] = []
+    feed_t = -np.inf  # the feed has been asked up to this stream time
+    sink_t = -np.inf
     wall0 = time.perf_counter()
     for m in measurements:
         t = m.t
@@ -135,6 +157,15 @@ def run_backend(
             next_record = t
             next_attempt = t + period
         t_last = t
+        if fix_feed is not None and t > feed_t:
+            for f in fix_feed.until(t):
+                heapq.heappush(pending, (f.t_recv, seq, f))
+                fed.append(f)
+                seq += 1
+            feed_t = t
+        if fix_sink is not None and t >= sink_t + 1.0:
+            fix_sink("time", t)
+            sink_t = t
         while pending and pending[0][0] <= t:
             _, _, fix = heapq.heappop(pending)
             w0 = time.perf_counter()
@@ -161,6 +192,8 @@ def run_backend(
                     heapq.heappush(pending, (att.fix.t_recv, seq, att.fix))
                     sent.append(att.fix)
                     seq += 1
+                    if fix_sink is not None:
+                        fix_sink("fix", att.fix)
                 next_attempt = t_first + period * (np.floor((t - t_first) / period + 1e-9) + 1)
             if on_progress is not None and n_predict % 300 == 0:
                 on_progress(t)
@@ -178,6 +211,9 @@ def run_backend(
         raise RunnerError("the measurement stream has fewer than two IMU samples: nothing to predict")
     if fixes is not None:
         sent = [f for f in fixes if f.t_recv <= t_last]
+    if fix_feed is not None:
+        fed.extend(fix_feed.rest())
+        sent = [f for f in fed if f.t_recv <= t_last]
     w0 = time.perf_counter()
     final = backend.trajectory()
     backend_s += time.perf_counter() - w0

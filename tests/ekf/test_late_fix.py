@@ -135,3 +135,59 @@ def test_rejected_late_fix_restores_everything(run):
     assert_same(ekf, ref, tol=0.0)
     # and the filter keeps working afterwards
     assert ekf.apply_fix(make_fix(run, 300, t_recv=run.t[-1])).accepted
+
+
+def _offset_start(run, dx_m: float) -> PoseEstimate:
+    T = np.eye(4)
+    T[:3, :3] = run.truth_R[0]
+    T[:3, 3] = run.truth_p[0] + np.array([dx_m, 0.0, 0.0])
+    return PoseEstimate(run.t[0], T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))
+
+
+def _feed_truth_fixes(ekf, run, every: int, delay_steps: int):
+    """Feed the run with a truth fix every ``every`` steps, delivered ``delay_steps`` late."""
+    outcomes, pending = [], []
+    for k, step in enumerate(run.steps):
+        ekf.predict(step)
+        if k in run.frames:
+            ekf.update_landmarks(run.frames[k])
+        if k % every == 0 and k > 0:
+            pending.append((k + delay_steps, make_fix(run, k + 1, offset_m=(0.0, 0.0))))
+        while pending and pending[0][0] <= k:
+            outcomes.append(ekf.apply_fix(pending.pop(0)[1]))
+    return outcomes
+
+
+def test_consistent_rejected_fixes_reopen_an_overconfident_filter(run):
+    """Started 1.5 m off with a 1 cm sigma, the filter rejects the first fixes at the Mahalanobis
+    gate; once three of them agree it inflates its pose covariance and follows them. With the
+    recovery disabled it stays wrong."""
+    fixes_every, delay = 30, 15
+    on = EkfSlam(_offset_start(run, 1.5))
+    out_on = _feed_truth_fixes(on, run, fixes_every, delay)
+    off_cfg = dataclasses.replace(EkfConfig(), fix_gate=dataclasses.replace(EkfConfig().fix_gate, consensus_n=0))
+    off = EkfSlam(_offset_start(run, 1.5), off_cfg)
+    out_off = _feed_truth_fixes(off, run, fixes_every, delay)
+    assert not any(o.accepted for o in out_off)
+    assert [o.accepted for o in out_on[:2]] == [False, False] and out_on[2].accepted
+    assert on.stats().extra["n_consensus_resets"] >= 1
+    err_on = np.linalg.norm(on.estimate().position_m[:2] - run.truth_p[-1, :2])
+    err_off = np.linalg.norm(off.estimate().position_m[:2] - run.truth_p[-1, :2])
+    assert err_off > 1.3
+    assert err_on < 0.2
+
+
+def test_inconsistent_rejected_fixes_do_not_reopen_the_filter(run):
+    """Fixes that are far from the estimate but disagree with each other (alternating 1.5 m east
+    and west) never complete a consensus: all stay rejected."""
+    ekf = EkfSlam(START)
+    outcomes = []
+    for k, step in enumerate(run.steps):
+        ekf.predict(step)
+        if k in run.frames:
+            ekf.update_landmarks(run.frames[k])
+        if k % 30 == 0 and k > 0:
+            sign = 1.0 if (k // 30) % 2 else -1.0
+            outcomes.append(ekf.apply_fix(make_fix(run, k + 1, offset_m=(sign * 1.5, 0.0))))
+    assert outcomes and not any(o.accepted for o in outcomes)
+    assert ekf.stats().extra["n_consensus_resets"] == 0

@@ -119,7 +119,7 @@ def test_runner_rejects_bad_streams(stream):
     imu_free = [m for m in stream.measurements[:200] if type(m).__name__ != "ImuSample"]
     with pytest.raises(RunnerError, match="IMU"):
         run_backend(DeadReckoning(stream.initial), imu_free)
-    with pytest.raises(RunnerError, match="either"):
+    with pytest.raises(RunnerError, match="one of a relocalizer"):
         run_backend(DeadReckoning(stream.initial), stream.measurements, relocalizer=object(), fixes=[])
 
 

@@ -185,15 +185,18 @@ class Isam2Smoother:
 
     def trajectory(self) -> Trajectory:
         """Smoothed keyframe poses with marginal covariances (protocol convention)."""
+        n = len(self.kfs)
+        live = [i for i in range(n) if i not in self.kfs.frozen and self.solver.alive(X(i))]
+        covs = dict(zip(live, self.solver.marginal_covs([X(i) for i in live])))
         Ts, Cs = [], []
-        for i in range(len(self.kfs)):
+        for i in range(n):
             if i in self.kfs.frozen:
                 T, C = self.kfs.frozen[i]
-            elif not self.solver.alive(X(i)):  # marginalized without being frozen: causal estimate
+            elif i not in covs:  # marginalized without being frozen: causal estimate
                 T, C = self.kfs.online_T[i], self.kfs.online_cov[i]
             else:
                 T = self.solver.pose(X(i))
-                C = cov_gtsam_to_world(T[:3, :3], self.solver.marginal_cov(X(i)))
+                C = cov_gtsam_to_world(T[:3, :3], covs[i])
             Ts.append(T)
             Cs.append(C)
         return Trajectory(np.array(self.kfs.t), np.array(Ts), np.array(Cs))

@@ -38,11 +38,13 @@ ENT_PATH, ENT_POSE, ENT_POSE_COV, ENT_LANDMARKS, ENT_FIXES = "path", "pose", "po
 ENT_ERR_POS, ENT_ERR_YAW = "errors/position", "errors/yaw"
 
 COLORS = {"truth": (44, 160, 44), "dr": (127, 127, 127), "ekf": (31, 119, 180), "isam2": (214, 39, 40),
+          "ekf_reloc": (23, 190, 207), "isam2_reloc": (255, 127, 14),
           "catalog": (230, 190, 110), "fix_ok": (40, 220, 80), "fix_bad": (230, 40, 40), "match": (255, 150, 20)}
 
 
 def _color(key: str) -> tuple[int, int, int]:
-    return COLORS.get(key.split("_")[0], (200, 200, 200))
+    """A run's colour: its own when it has one ("ekf_reloc"), else its back-end's ("ekf")."""
+    return COLORS.get(key, COLORS.get(key.split("_")[0], (200, 200, 200)))
 
 
 def _downsample(img: np.ndarray) -> np.ndarray:
@@ -171,9 +173,13 @@ def world_view(world: str, keys: list[str], center_xy: np.ndarray, span_m: float
                           eye_controls=eye, line_grid=False)
         for k in keys
     ]
+    # the whole traverse on the x axis (not the viewer's default window around the time cursor)
+    whole = rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
     series = [
-        rrb.TimeSeriesView(origin=f"/{world}/{ENT_ERR_POS}", name="position error [m] and 3σ"),
-        rrb.TimeSeriesView(origin=f"/{world}/{ENT_ERR_YAW}", name="yaw error [deg] and 3σ"),
+        rrb.TimeSeriesView(origin=f"/{world}/{ent}", name=name,
+                           axis_x=rrb.TimeAxis(view_range=whole),
+                           time_ranges=rrb.VisibleTimeRange(TIMELINE, range=whole))
+        for ent, name in ((ENT_ERR_POS, "position error [m] and 3σ"), (ENT_ERR_YAW, "yaw error [deg] and 3σ"))
     ]
     return rrb.Vertical(rrb.Horizontal(*maps), rrb.Horizontal(*series), row_shares=[3, 2], name=world)
 

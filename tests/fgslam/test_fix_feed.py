@@ -1,0 +1,40 @@
+"""The streamed fix list a replay consumes while the reference pass is still running."""
+
+from __future__ import annotations
+
+import queue
+
+import numpy as np
+import pytest
+
+from fgslam.passes import FixFeedError, QueueFixFeed
+from reloc.measurements import GlobalFix
+
+
+def _fix(t_meas: float, delay: float = 2.0) -> GlobalFix:
+    return GlobalFix(t_meas, t_meas + delay, t_meas, 0.0, 0.0, np.eye(3) * 0.01)
+
+
+def test_feed_returns_a_fix_only_once_the_reference_is_past_its_receive_time():
+    q: queue.Queue = queue.Queue()
+    feed = QueueFixFeed(q, timeout_s=0.2)
+    q.put(("fix", _fix(3.0)))  # t_recv 5
+    q.put(("time", 5.0))  # fixes with t_recv < 5 known: not enough to answer "up to 5"
+    with pytest.raises(FixFeedError, match="sent nothing"):
+        feed.until(5.0)
+    q.put(("fix", _fix(4.0)))  # t_recv 6
+    q.put(("time", 6.5))
+    assert [f.t_meas for f in feed.until(5.0)] == [3.0]
+    assert feed.until(5.5) == []
+    assert [f.t_meas for f in feed.until(6.0)] == [4.0]
+    q.put(("fix", _fix(7.0)))
+    q.put(("done", None))
+    assert [f.t_meas for f in feed.until(100.0)] == [7.0]
+    assert feed.rest() == []
+
+
+def test_feed_reports_a_failed_reference_pass():
+    q: queue.Queue = queue.Queue()
+    q.put(("error", "SmootherError: indeterminant system"))
+    with pytest.raises(FixFeedError, match="indeterminant"):
+        QueueFixFeed(q, timeout_s=1.0).until(1.0)
