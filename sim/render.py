@@ -16,8 +16,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter, map_coordinates
+from scipy.ndimage import gaussian_filter
 
 from sim.errors import SimError
 from sim.world import World
@@ -58,6 +59,22 @@ class Appearance:
     seed: int = 0
 
 
+_REMAP_COLS = 1024  # cv2.remap wants maps under 32767 px a side: long point lists are folded
+
+
+def _bilinear(grid: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N,) float32 of ``grid`` (h, w) float32 at continuous indices (column
+    ``fx``, row ``fy``) (N,), edge values outside (as ``map_coordinates(order=1, mode="nearest")``)."""
+    n = len(fx)
+    rows = max(-(-n // _REMAP_COLS), 1)
+    mx = np.zeros(rows * _REMAP_COLS, np.float32)
+    my = np.zeros(rows * _REMAP_COLS, np.float32)
+    mx[:n], my[:n] = fx, fy
+    out = cv2.remap(grid, mx.reshape(rows, _REMAP_COLS), my.reshape(rows, _REMAP_COLS), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.ravel()[:n]
+
+
 class _Shader:
     """Texture and per-rock albedos of one (world, appearance) pair."""
 
@@ -70,60 +87,111 @@ class _Shader:
         # fine speckle plus a coarser mottling (weighted up: smoothing shrinks its spread)
         grid = gaussian_filter(rng.standard_normal((ny, nx)), 1.0)
         grid += 1.5 * gaussian_filter(rng.standard_normal((ny, nx)), 4.0)
-        self._tex = grid / (grid.std() + 1e-12)
-        self._origin = (xmin - cell, ymin - cell)
-        self._cell = cell
+        self._tex = (grid / (grid.std() + 1e-12)).astype(np.float32)
+        self._origin = np.array([xmin - cell, ymin - cell], np.float32)
+        self._cell = np.float32(cell)
         n = len(world.rocks)
-        self._rock_albedo = app.rock_albedo * np.exp(app.rock_albedo_spread * rng.standard_normal(n))
+        self._rock_albedo = (app.rock_albedo * np.exp(app.rock_albedo_spread * rng.standard_normal(n))).astype(np.float32)
         self.app = app
 
     def albedo(self, xyz: np.ndarray, rock: np.ndarray) -> np.ndarray:
-        """Albedo (N,) of surface points ``xyz`` (N, 3) owned by ``rock`` (N,) (-1: soil)."""
+        """Albedo (N,) float32 of surface points ``xyz`` (N, 3) owned by ``rock`` (N,) (-1: soil)."""
         fx = (xyz[:, 0] - self._origin[0]) / self._cell
         fy = (xyz[:, 1] - self._origin[1]) / self._cell
-        tex = map_coordinates(self._tex, [fy, fx], order=1, mode="nearest")
-        soil = self.app.soil_albedo * (1.0 + self.app.texture_amplitude * tex)
-        out = soil
-        on_rock = rock >= 0
-        if np.any(on_rock):
-            out = np.where(on_rock, self._rock_albedo[np.maximum(rock, 0)] * (1.0 + 0.3 * self.app.texture_amplitude * tex), soil)
+        tex = _bilinear(self._tex, fx, fy)
+        amp = np.float32(self.app.texture_amplitude)
+        out = np.float32(self.app.soil_albedo) * (1.0 + amp * tex)
+        on_rock = np.flatnonzero(rock >= 0)
+        if len(on_rock):
+            out[on_rock] = self._rock_albedo[rock[on_rock]] * (1.0 + np.float32(0.3) * amp * tex[on_rock])
         return out
 
 
-def _hits(world: World, rays: np.ndarray):
-    """Cast ``rays`` (N, 6): hit mask, rock row (-1: none), distance, point (N, 3) and the unit
-    normal (N, 3) turned towards the viewer."""
-    t_hit, rock, normal = world.raycast_scene().cast(rays)
-    hit = np.isfinite(t_hit)
-    d = rays[:, 3:6]
-    normal *= -np.sign(np.einsum("ij,ij->i", normal, d) + 1e-12)[:, None]
-    p = rays[:, :3] + d * np.where(hit, t_hit, 0.0)[:, None]
-    return hit, np.where(hit, rock, -1), t_hit, p, normal
+class _Caster:
+    """First-hit and shadow queries on a world's ray-casting scene, float32 throughout, returning
+    the hit rays only (sky rays cost nothing after the cast)."""
+
+    def __init__(self, world: World) -> None:
+        from sim.open3d_loader import open3d
+
+        rs = world.raycast_scene()
+        self._core = open3d().core
+        self._scene = rs.scene
+        self._rock_geometry = rs.rock_geometry
+        self._triangle_rock = np.asarray(world.rocks.triangle_rock, dtype=np.int32)
+        z_top = float(world.terrain.z_m.max())
+        if len(world.rocks):
+            z_top = max(z_top, float(world.rocks.vertices_m[:, 2].max()))
+        self.z_top = z_top
+        self.z_bottom = float(world.terrain.z_m.min())
+
+    def first_hits(self, rays: np.ndarray):
+        """Cast ``rays`` (N, 6) float32; for the K rays that hit: their indices (K,), distance
+        (K,), rock row (K,) (-1: terrain), hit point (K, 3) and unit normal (K, 3) turned towards
+        the ray's origin."""
+        rays = np.ascontiguousarray(rays, dtype=np.float32)
+        ans = self._scene.cast_rays(self._core.Tensor.from_numpy(rays))
+        t = ans["t_hit"].numpy()
+        idx = np.flatnonzero(np.isfinite(t))
+        t = t[idx]
+        geom = ans["geometry_ids"].numpy()[idx]
+        prim = ans["primitive_ids"].numpy()[idx]
+        rock = np.full(len(idx), -1, dtype=np.int32)
+        on_rock = np.flatnonzero(geom == self._rock_geometry)
+        rock[on_rock] = self._triangle_rock[prim[on_rock]]
+        normal = np.take(ans["primitive_normals"].numpy(), idx, axis=0)  # take: a fast row gather
+        hit_rays = np.take(rays, idx, axis=0)
+        back = np.flatnonzero(_dot(normal, hit_rays[:, 3:6]) > -1e-12)  # rare: meshes wound inwards
+        normal[back] = -normal[back]
+        p = np.empty((len(idx), 3), dtype=np.float32)
+        for c in range(3):  # column by column: broadcasting over the strided (K, 6) rows is slower
+            np.multiply(hit_rays[:, 3 + c], t, out=p[:, c])
+            p[:, c] += hit_rays[:, c]
+        return idx, t, rock, p, normal
+
+    def sunlit(self, p: np.ndarray, normal: np.ndarray, sun: np.ndarray) -> np.ndarray:
+        """Boolean (N,): surface points ``p`` (N, 3) (offset 1 cm along ``normal``) whose ray
+        towards the unit ``sun`` (3,) leaves the scene unblocked."""
+        if len(p) == 0:
+            return np.zeros(0, dtype=bool)
+        rays = np.empty((len(p), 6), dtype=np.float32)
+        for c in range(3):
+            np.multiply(normal[:, c], np.float32(0.01), out=rays[:, c])
+            rays[:, c] += p[:, c]
+            rays[:, 3 + c] = sun[c]
+        # above the highest vertex nothing can block the sun: stop the ray there
+        t_far = (self.z_top - self.z_bottom + 0.1) / max(float(sun[2]), 1e-3)
+        blocked = self._scene.test_occlusions(self._core.Tensor.from_numpy(rays), tfar=t_far).numpy()
+        return ~blocked
 
 
-def _sunlit(world: World, p: np.ndarray, normal: np.ndarray, sun: np.ndarray, todo: np.ndarray) -> np.ndarray:
-    """Boolean (N,): surface points ``p`` (N, 3) flagged in ``todo`` that see the sun."""
-    lit = np.zeros(len(p), dtype=bool)
-    idx = np.flatnonzero(todo)
-    if len(idx):
-        shadow = np.hstack([p[idx] + 0.01 * normal[idx], np.broadcast_to(sun, (len(idx), 3))])
-        t_sh, _, _ = world.raycast_scene().cast(shadow)
-        lit[idx] = ~np.isfinite(t_sh)
-    return lit
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products (N,) of (N, 3) arrays (column arithmetic, faster than einsum here)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
-def _grey(shader: "_Shader", lighting: Lighting, hit, rock, p, normal, lit) -> np.ndarray:
-    """Grey level (N,) in [0, 1]: albedo x (ambient + direct sun), the sky level on a miss."""
-    sun = lighting.sun_dir()
-    lambert = np.clip(normal @ sun, 0.0, 1.0)
-    light = lighting.ambient + (1.0 - lighting.ambient) * lambert * lit / max(sun[2], 0.5)
-    grey = np.full(len(p), shader.app.sky_level)
-    grey[hit] = shader.albedo(p[hit], rock[hit]) * light[hit]
-    return np.clip(grey, 0.0, 1.0)
+def _toward(normal: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """Cosines (N,) between unit normals (N, 3) and the unit ``sun`` (3,)."""
+    return normal[:, 0] * sun[0] + normal[:, 1] * sun[1] + normal[:, 2] * sun[2]
+
+
+def _light(lighting: Lighting, sun: np.ndarray, cos_sun: np.ndarray, lit: np.ndarray) -> np.ndarray:
+    """Light (N,) float32 on surface points whose normal makes ``cos_sun`` (N,) with the sun:
+    ambient + direct sun (Lambert) where ``lit``."""
+    lambert = np.clip(cos_sun, 0.0, 1.0)
+    direct = np.float32((1.0 - lighting.ambient) / max(float(sun[2]), 0.5))
+    return np.float32(lighting.ambient) + direct * lambert * lit
+
+
+def _grey(shader: _Shader, n_rays: int, idx: np.ndarray, rock: np.ndarray, p: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """Grey level (n_rays,) float32 in [0, 1]: albedo x light at the hit rays ``idx``, the sky level elsewhere."""
+    grey = np.full(n_rays, shader.app.sky_level, dtype=np.float32)
+    grey[idx] = np.clip(shader.albedo(p, rock) * light, 0.0, 1.0)
+    return grey
 
 
 def _to_uint8(grey: np.ndarray, app: Appearance, rng: np.random.Generator | None) -> np.ndarray:
-    img = (255.0 * grey).astype(np.float32)
+    img = np.float32(255.0) * grey.astype(np.float32)
     if app.blur_sigma_px > 0:
         img = gaussian_filter(img, app.blur_sigma_px)
     if app.noise_sigma > 0:
@@ -154,13 +222,33 @@ class NadirRender:
 
 
 class Renderer:
-    """Renders one world under one appearance (texture and rock albedos are built once)."""
+    """Renders one world under one appearance (texture, rock albedos and the ray caster are built once)."""
 
     def __init__(self, world: World, appearance: Appearance = Appearance()) -> None:
         self.world = world
         self.appearance = appearance
         self._shader = _Shader(world, appearance)
-        self._dirs: dict[PinholeCamera, np.ndarray] = {}
+        self._caster: _Caster | None = None
+        self._dirs: dict = {}  # per camera: unit ray directions (and their optical z for a pair)
+
+    @property
+    def caster(self) -> _Caster:
+        """The world's ray caster (built on first use)."""
+        if self._caster is None:
+            self._caster = _Caster(self.world)
+        return self._caster
+
+    def _shade(self, rays: np.ndarray, lighting: Lighting):
+        """First hits of ``rays`` (N, 6), their shadow test and grey level (N,); returns
+        (grey, hit indices, rock rows, distances)."""
+        sun = lighting.sun_dir().astype(np.float32)
+        idx, t, rock, p, normal = self.caster.first_hits(rays)
+        lit = np.zeros(len(idx), dtype=bool)
+        cos_sun = _toward(normal, sun)
+        facing = np.flatnonzero(cos_sun > 0)
+        lit[facing] = self.caster.sunlit(np.take(p, facing, axis=0), np.take(normal, facing, axis=0), sun)
+        grey = _grey(self._shader, len(rays), idx, rock, p, _light(lighting, sun, cos_sun, lit))
+        return grey, idx, rock, t
 
     def nadir(
         self, gsd_m: float, lighting: Lighting = Lighting(), *,
@@ -175,93 +263,116 @@ class Renderer:
         H = int(round((ymax - ymin) / gsd_m))
         if W < 1 or H < 1:
             raise RenderError(f"extent {extent} is smaller than one {gsd_m} m pixel")
-        xs = xmin + (np.arange(W) + 0.5) * gsd_m
-        ys = ymax - (np.arange(H) + 0.5) * gsd_m
-        gx, gy = np.meshgrid(xs, ys)
-        top = float(world.terrain.z_m.max() + world.rocks.height_m.max(initial=0.0) + 10.0)
-        rays = np.zeros((H * W, 6), dtype=np.float32)
-        rays[:, 0], rays[:, 1], rays[:, 2], rays[:, 5] = gx.ravel(), gy.ravel(), top, -1.0
-        hit, rock, _, p, normal = _hits(world, rays)
-        sun = lighting.sun_dir()
-        lit = _sunlit(world, p, normal, sun, hit & (normal @ sun > 0))
-        grey = _grey(self._shader, lighting, hit, rock, p, normal, lit)
+        xs = (xmin + (np.arange(W) + 0.5) * gsd_m).astype(np.float32)
+        ys = (ymax - (np.arange(H) + 0.5) * gsd_m).astype(np.float32)
+        rays = np.zeros((H, W, 6), dtype=np.float32)
+        rays[:, :, 0], rays[:, :, 1] = xs[None, :], ys[:, None]
+        rays[:, :, 2], rays[:, :, 5] = self.caster.z_top + 10.0, -1.0
+        grey, idx, rock, _ = self._shade(rays.reshape(-1, 6), lighting)
+        instance = np.full(H * W, -1, dtype=np.int32)
+        instance[idx] = rock
         image = _to_uint8(grey.reshape(H, W), self.appearance, rng)
-        return NadirRender(image, rock.reshape(H, W).astype(np.int32),
-                           (xmin, xmin + W * gsd_m, ymax - H * gsd_m, ymax), gsd_m)
+        return NadirRender(image, instance.reshape(H, W), (xmin, xmin + W * gsd_m, ymax - H * gsd_m, ymax), gsd_m)
+
+    def _camera_rays(self, T: np.ndarray, camera: PinholeCamera, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """Unit ray directions (H*W, 3) of ``camera`` in the optical frame and in the world at ``T``."""
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise RenderError(f"{what} must be a finite 4x4 pose, got shape {T.shape}")
+        if camera not in self._dirs:
+            self._dirs[camera] = camera.ray_dirs_cam().astype(np.float32)
+        d_cam = self._dirs[camera]
+        return d_cam, d_cam @ T[:3, :3].astype(np.float32).T
+
+    def _z_two_views(self, camera: PinholeCamera, d_cam: np.ndarray) -> np.ndarray:
+        """Optical z (2 H W,) of the unit ray directions of ``camera``, left view then right view."""
+        key = ("z2", camera)
+        if key not in self._dirs:
+            self._dirs[key] = np.concatenate([d_cam[:, 2], d_cam[:, 2]])
+        return self._dirs[key]
 
     def pinhole(
-        self, T_world_cam: np.ndarray, camera: "PinholeCamera", lighting: Lighting = Lighting(),
+        self, T_world_cam: np.ndarray, camera: PinholeCamera, lighting: Lighting = Lighting(),
         *, rng: np.random.Generator | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One pinhole view at ``T_world_cam`` (4, 4, optical frame): image (H, W) uint8,
         instance (H, W) int32 rock rows (-1: none), optical depth (H, W) metres (inf: sky)."""
         T = np.asarray(T_world_cam, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise RenderError(f"T_world_cam must be a finite 4x4 pose, got shape {T.shape}")
-        if camera not in self._dirs:
-            self._dirs[camera] = camera.ray_dirs_cam().astype(np.float32)
-        d_cam = self._dirs[camera]
-        R = T[:3, :3].astype(np.float32)
+        d_cam, d_w = self._camera_rays(T, camera, "T_world_cam")
         rays = np.empty((len(d_cam), 6), dtype=np.float32)
-        rays[:, :3], rays[:, 3:] = T[:3, 3], d_cam @ R.T
-        hit, rock, t_hit, p, normal = _hits(self.world, rays)
-        sun = lighting.sun_dir().astype(np.float32)
-        lit = _sunlit(self.world, p, normal, sun, hit & (normal @ sun > 0))
-        grey = _grey(self._shader, lighting, hit, rock, p, normal, lit)
+        rays[:, :3], rays[:, 3:] = T[:3, 3], d_w
+        grey, idx, rock, t = self._shade(rays, lighting)
         H, W = camera.height_px, camera.width_px
+        instance = np.full(H * W, -1, dtype=np.int32)
+        instance[idx] = rock
+        depth = np.full(H * W, np.inf, dtype=np.float32)
+        depth[idx] = t * d_cam[idx, 2]
         image = _to_uint8(grey.reshape(H, W), self.appearance, rng)
-        return image, rock.reshape(H, W).astype(np.int32), (t_hit * d_cam[:, 2]).reshape(H, W)
+        return image, instance.reshape(H, W), depth.reshape(H, W)
 
     def stereo(
-        self, T_world_left: np.ndarray, camera: "PinholeCamera", baseline_m: float,
+        self, T_world_left: np.ndarray, camera: PinholeCamera, baseline_m: float,
         lighting: Lighting = Lighting(), *, rng: np.random.Generator | None = None,
-    ) -> "StereoRender":
+    ) -> StereoRender:
         """Render the left camera at ``T_world_left`` (4, 4, optical frame) and the right one
-        ``baseline_m`` along the left camera's +x. Both views share one primary ray cast; the
-        right view reuses the left view's shadow test where it sees the same surface point."""
-        world = self.world
+        ``baseline_m`` along the left camera's +x. Both views share one primary ray cast; shadow
+        rays are cast for sun-facing hits only, and the right view reuses the left view's shadow
+        test wherever it sees the same surface point."""
         T = np.asarray(T_world_left, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise RenderError(f"T_world_left must be a finite 4x4 pose, got shape {T.shape}")
+        d_cam, d_w = self._camera_rays(T, camera, "T_world_left")
         if not baseline_m > 0:
             raise RenderError(f"baseline_m must be > 0, got {baseline_m}")
-        if camera not in self._dirs:
-            self._dirs[camera] = camera.ray_dirs_cam().astype(np.float32)
-        d_cam = self._dirs[camera]
         R = T[:3, :3].astype(np.float32)
-        d_w = d_cam @ R.T
         o_left = T[:3, 3].astype(np.float32)
         n = len(d_w)
+        H, W = camera.height_px, camera.width_px
         rays = np.empty((2 * n, 6), dtype=np.float32)
         rays[:n, :3], rays[n:, :3] = o_left, o_left + np.float32(baseline_m) * R[:, 0]
         rays[:n, 3:], rays[n:, 3:] = d_w, d_w
-        hit, rock, t_hit, p, normal = _hits(world, rays)
+        idx, t, rock, p, normal = self.caster.first_hits(rays)
         sun = lighting.sun_dir().astype(np.float32)
-        facing = hit & (normal @ sun > 0)
-        H, W = camera.height_px, camera.width_px
-        lit = np.zeros(2 * n, dtype=bool)
-        lit[:n] = _sunlit(world, p[:n], normal[:n], sun, facing[:n])
-        depth = (t_hit[:n] * d_cam[:, 2]).reshape(H, W)
-        # right-view points also seen by the left view take the left view's shadow flag
-        q = (p[n:] - o_left) @ R
-        z = np.where(facing[n:], q[:, 2], np.nan)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.floor(camera.f_px * q[:, 0] / z + camera.cx_px)
-            v = np.floor(camera.f_px * q[:, 1] / z + camera.cy_px)
-        inside = facing[n:] & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        ui, vi = u[inside].astype(int), v[inside].astype(int)
-        same = np.abs(depth[vi, ui] - z[inside]) < 0.01 + 0.01 * z[inside]
-        reuse = np.flatnonzero(inside)[same]
-        lit[n + reuse] = lit[:n].reshape(H, W)[vi[same], ui[same]]
-        todo = facing[n:].copy()
-        todo[reuse] = False
-        lit[n:] |= _sunlit(world, p[n:], normal[n:], sun, todo)
-        grey = _grey(self._shader, lighting, hit, rock, p, normal, lit)
+        cos_sun = _toward(normal, sun)
+        facing = cos_sun > 0
+        n_left = int(np.searchsorted(idx, n))  # hits are sorted: left view first
+        z_hit = t * self._z_two_views(camera, d_cam)[idx]  # optical depth of every hit (same axis in both views)
+        depth = np.full(n, np.inf, dtype=np.float32)
+        depth[idx[:n_left]] = z_hit[:n_left]
+        lit = np.zeros(len(idx), dtype=bool)
+        fl = np.flatnonzero(facing[:n_left])
+        lit[fl] = self.caster.sunlit(np.take(p, fl, axis=0), np.take(normal, fl, axis=0), sun)
+        lit_left = np.zeros(n, dtype=bool)
+        lit_left[idx[fl]] = lit[fl]
+        # a right-view point at pixel (row, col) and depth z lies in the left view at row, column
+        # col + 0.5 + f b / z (rectified pair); where the left view sees the same surface there
+        # and the shadow flag does not change across that pixel's row neighbours (the point lies
+        # within half a pixel of the left hit), it takes the left view's flag
+        lit_img = lit_left.reshape(H, W)
+        steady = np.ones((H, W), dtype=bool)
+        steady[:, 1:] = lit_img[:, 1:] == lit_img[:, :-1]
+        steady[:, :-1] &= steady[:, 1:].copy()
+        steady = steady.ravel()
+        fr = n_left + np.flatnonzero(facing[n_left:])
+        pix = idx[fr] - n
+        row = pix // W
+        col = pix - row * W
+        z = z_hit[fr]
+        u = np.floor(col + np.float32(0.5) + np.float32(camera.f_px * baseline_m) / z).astype(np.intp)
+        inside = np.flatnonzero(u < W)
+        left_pix = row[inside] * W + u[inside]
+        same = (np.abs(depth[left_pix] - z[inside]) < 0.01 + 0.01 * z[inside]) & steady[left_pix]
+        reuse = inside[same]
+        lit[fr[reuse]] = lit_left[left_pix[same]]
+        rest = np.ones(len(fr), dtype=bool)
+        rest[reuse] = False
+        todo = fr[rest]
+        lit[todo] = self.caster.sunlit(np.take(p, todo, axis=0), np.take(normal, todo, axis=0), sun)
+        grey = _grey(self._shader, 2 * n, idx, rock, p, _light(lighting, sun, cos_sun, lit))
+        instance = np.full(2 * n, -1, dtype=np.int32)
+        instance[idx] = rock
         rng = rng if rng is not None else np.random.default_rng([self.appearance.seed, 13])
         left = _to_uint8(grey[:n].reshape(H, W), self.appearance, rng)
         right = _to_uint8(grey[n:].reshape(H, W), self.appearance, rng)
-        return StereoRender(left, right, rock[:n].reshape(H, W).astype(np.int32),
-                            rock[n:].reshape(H, W).astype(np.int32), depth, T, camera, float(baseline_m))
+        return StereoRender(left, right, instance[:n].reshape(H, W), instance[n:].reshape(H, W), depth.reshape(H, W), T, camera,
+                            float(baseline_m))
 
 
 def render_nadir(
@@ -283,7 +394,7 @@ class PinholeCamera:
     cy_px: float
 
     @staticmethod
-    def from_fov(width_px: int, height_px: int, hfov_deg: float) -> "PinholeCamera":
+    def from_fov(width_px: int, height_px: int, hfov_deg: float) -> PinholeCamera:
         """Camera with horizontal field of view ``hfov_deg`` and a centred principal point."""
         if width_px < 1 or height_px < 1 or not 0 < hfov_deg < 170:
             raise RenderError(f"bad camera: {width_px} x {height_px} px, hfov {hfov_deg} deg")

@@ -33,3 +33,33 @@ def test_train_export_and_load(tmp_path, kind):
     assert d.boxes_xyxy.shape[1] == 4
     # a second run reads the cached images instead of rendering again
     assert main(args[:-2] + ["--out", str(tmp_path / "again.onnx")]) == 0
+
+
+def test_flip_tta_export_is_mirror_equivariant(tmp_path):
+    """With mirror test-time augmentation the exported graph's output for a mirrored image is the
+    mirrored output (x offsets o -> 1 - o), and saved weights load back with their architecture."""
+    import onnxruntime as ort
+    import torch
+
+    from fgslam.train.detector import export_onnx, load_weights, save_weights
+    from fgslam.train.model import RockNet
+
+    torch.manual_seed(0)
+    net = RockNet(widths=(8, 16, 24, 32), out_stride=2, fine_width=8).eval()
+    for m in net.modules():  # non-trivial batch-norm statistics
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 1.5)
+    save_weights(net, tmp_path / "w.pt")
+    again = load_weights(tmp_path / "w.pt").eval()
+    assert again.arch == net.arch
+    out = tmp_path / "tta.onnx"
+    export_onnx(again, "rover", out, {}, flip_tta=True)
+    sess = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    x = np.random.default_rng(1).uniform(0, 1, (1, 1, 64, 96)).astype(np.float32)
+    y = sess.run(None, {"images": x})[0]
+    y_m = sess.run(None, {"images": x[..., ::-1].copy()})[0]
+    mirrored = y[..., ::-1].copy()
+    mirrored[:, 1] = 1.0 - mirrored[:, 1]
+    assert y.shape == (1, 5, 32, 48)
+    assert np.allclose(y_m, mirrored, atol=1e-5)

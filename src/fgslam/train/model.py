@@ -1,17 +1,18 @@
 """The small CenterNet-style rock detector (PyTorch): a stride-16 backbone of plain and depthwise
 separable convolutions, a top-down path back to stride 4 (or 2), and one head that predicts,
 per output cell, a rock-centre heatmap logit, the sub-cell centre offset (x, y) and the log box
-size (w, h) in output cells. About 0.09 M parameters; ~0.3 GMAC on a 640 x 640 grey image."""
+size (w, h) in output cells. Default widths: 0.09 M parameters, ~0.3 GMAC on a 640 x 640 grey
+image; the rover model (widths 12/32/64/128, stride 2): 0.16 M parameters."""
 
 from __future__ import annotations
 
 import torch
-from torch import nn
 import torch.nn.functional as F
+from torch import nn
 
 from fgslam.train.targets import STRIDE
 
-__all__ = ["STRIDE", "RockNet", "ExportWrapper"]
+__all__ = ["STRIDE", "ExportWrapper", "RockNet"]
 N_OUT = 5  # heat logit, offset x, offset y, log w, log h
 
 
@@ -37,6 +38,7 @@ class RockNet(nn.Module):
         if out_stride not in (2, 4):
             raise ValueError(f"out_stride must be 2 or 4, got {out_stride}")
         self.out_stride = out_stride
+        self.arch = {"in_channels": in_channels, "widths": tuple(widths), "out_stride": out_stride, "fine_width": fine_width}
         c1, c2, c3, c4 = widths
         self.stem = _cbr(in_channels, c1, 2)
         self.s2 = nn.Sequential(_cbr(c1, c2, 2), _dw(c2))
@@ -70,12 +72,20 @@ class RockNet(nn.Module):
 
 
 class ExportWrapper(nn.Module):
-    """The deployed graph: sigmoid on the heat channel, the other four channels raw."""
+    """The deployed graph: sigmoid on the heat channel, the other four channels raw. With
+    ``flip_tta`` the network also sees the left-right mirrored image and the two outputs are
+    averaged cell by cell (heat after the sigmoid; the mirrored x offset o becomes 1 - o)."""
 
-    def __init__(self, net: RockNet) -> None:
+    def __init__(self, net: RockNet, flip_tta: bool = False) -> None:
         super().__init__()
         self.net = net
+        self.flip_tta = flip_tta
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = self.net(x)
-        return torch.cat([torch.sigmoid(y[:, :1]), y[:, 1:]], dim=1)
+        heat, rest = torch.sigmoid(y[:, :1]), y[:, 1:]
+        if self.flip_tta:
+            yf = torch.flip(self.net(torch.flip(x, dims=[3])), dims=[3])
+            heat = 0.5 * (heat + torch.sigmoid(yf[:, :1]))
+            rest = 0.5 * (rest + torch.cat([1.0 - yf[:, 1:2], yf[:, 2:]], dim=1))
+        return torch.cat([heat, rest], dim=1)

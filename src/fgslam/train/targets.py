@@ -17,7 +17,7 @@ def make_targets(boxes_xyxy: np.ndarray, ignore_xyxy: np.ndarray, h_px: int, w_p
                  stride: int = STRIDE) -> dict[str, np.ndarray]:
     """Targets for one image of ``h_px`` x ``w_px`` (multiples of ``stride``) from positive boxes
     (P, 4) and ignore boxes (Q, 4) in pixels: heat (h, w), weight (h, w), reg (4, h, w), mask (h, w)."""
-    STRIDE = stride  # noqa: N806 - the cell size of this model
+    STRIDE = stride  # the cell size of this model (shadows the module default)
     h, w = h_px // STRIDE, w_px // STRIDE
     heat = np.zeros((h, w), np.float32)
     weight = np.ones((h, w), np.float32)
