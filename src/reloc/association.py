@@ -24,6 +24,7 @@ from scipy.stats import chi2
 from reloc.errors import MeasurementError
 
 _NO_MATCH = 1e12
+_REINVERT_EVERY = 8  # joint compatibility: fresh inverse after this many downdates (round-off)
 
 
 @dataclass(frozen=True)
@@ -147,27 +148,42 @@ def associate(
 
 def _joint_compatible(det, cand, d2, z_base, zhat_base, R_z, S_hat, config, joint_cov):
     """While the stacked innovation fails chi2(3k), drop the pair whose removal lowers the joint
-    distance most; returns (det, cand, n_dropped)."""
+    distance most; returns (det, cand, n_dropped).
+
+    One inverse, then a downdate per dropped pair: with ``Y = S^-1`` and ``y = Y nu``, removing pair i (block b) leaves
+    the joint distance ``nu^T S^-1 nu - y_b^T Y_bb^-1 y_b`` (the Schur complement), so all k
+    candidates cost k 3x3 solves instead of k solves of size 3k; the covariance of the kept pairs
+    is the sub-matrix of the current one, so the callback is asked once."""
     n_dropped = 0
+    if not det.size:
+        return det, cand, 0
+    nu = (z_base[det] - zhat_base[cand]).reshape(-1)
+    if joint_cov is not None:
+        S = np.asarray(joint_cov(det, cand), dtype=float)
+    else:
+        k = det.size
+        S = np.zeros((3 * k, 3 * k))
+        for i in range(k):
+            S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = S_hat[cand[i]] + R_z[det[i]]
+    Y = None
     while det.size:
-        nu = (z_base[det] - zhat_base[cand]).reshape(-1)
-        if joint_cov is not None:
-            S = np.asarray(joint_cov(det, cand), dtype=float)
-        else:
-            k = det.size
-            S = np.zeros((3 * k, 3 * k))
-            for i in range(k):
-                S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = S_hat[cand[i]] + R_z[det[i]]
-        if float(nu @ np.linalg.solve(S, nu)) <= chi2.ppf(config.joint_confidence, 3 * det.size):
+        k = det.size
+        if Y is None or n_dropped % _REINVERT_EVERY == 0:
+            Y = np.linalg.inv(0.5 * (S + S.T))
+        y = Y @ nu
+        if float(nu @ y) <= chi2.ppf(config.joint_confidence, 3 * k):
             break
-        if det.size == 1:
+        if k == 1:
             return det[:0], cand[:0], n_dropped + 1
-        best, best_d2 = 0, np.inf
-        for i in range(det.size):
-            keep = np.r_[0 : 3 * i, 3 * i + 3 : 3 * det.size]
-            joint_d2 = float(nu[keep] @ np.linalg.solve(S[np.ix_(keep, keep)], nu[keep]))
-            if joint_d2 < best_d2:
-                best, best_d2 = i, joint_d2
+        Yb = Y.reshape(k, 3, k, 3)[np.arange(k), :, np.arange(k), :]  # (k, 3, 3) diagonal blocks
+        yb = y.reshape(k, 3)
+        reduction = np.einsum("ki,ki->k", yb, np.linalg.solve(Yb, yb[..., None])[..., 0])
+        best = int(np.argmax(reduction))  # the largest reduction leaves the smallest joint distance
+        keep = np.r_[0 : 3 * best, 3 * best + 3 : 3 * k]
+        b = np.arange(3 * best, 3 * best + 3)
+        # inverse of the kept sub-matrix from the full inverse (downdate, O(k^2))
+        Y = Y[np.ix_(keep, keep)] - Y[np.ix_(keep, b)] @ np.linalg.solve(Y[np.ix_(b, b)], Y[np.ix_(b, keep)])
+        S, nu = S[np.ix_(keep, keep)], nu[keep]
         det, cand = np.delete(det, best), np.delete(cand, best)
         n_dropped += 1
     return det, cand, n_dropped

@@ -140,3 +140,44 @@ def test_landmark_book_confirm_drop_evict():
     ev = book.evictions(1, distance_m=np.array([5.0, 1.0]), protect=np.array([True, False]))
     assert ev.tolist() == [False, True]
     assert book.copy().ids is not book.ids
+
+
+def _brute_force_drop_order(nu, S, limit_of_k):
+    """Reference: drop, one at a time, the pair whose removal leaves the smallest joint distance."""
+    idx = list(range(len(nu) // 3))
+    dropped = []
+    while idx:
+        cols = np.concatenate([np.arange(3 * i, 3 * i + 3) for i in idx])
+        d2 = nu[cols] @ np.linalg.solve(S[np.ix_(cols, cols)], nu[cols])
+        if d2 <= limit_of_k(len(idx)):
+            break
+        best = min(idx, key=lambda i: (lambda c: nu[c] @ np.linalg.solve(S[np.ix_(c, c)], nu[c]))(
+            np.concatenate([np.arange(3 * j, 3 * j + 3) for j in idx if j != i])) if len(idx) > 1 else 0.0)
+        idx.remove(best)
+        dropped.append(best)
+    return idx, dropped
+
+
+def test_joint_compatibility_drops_the_same_pairs_as_the_brute_force_search():
+    from scipy.stats import chi2
+
+    from reloc.association import _joint_compatible
+
+    rng = np.random.default_rng(5)
+    cfg = AssociationConfig()
+    for trial in range(20):
+        k = int(rng.integers(2, 12))
+        A = rng.normal(size=(3 * k, 3 * k)) * 0.05
+        S = A @ A.T + np.eye(3 * k) * 0.01
+        nu = rng.multivariate_normal(np.zeros(3 * k), S)
+        bad = rng.choice(k, size=int(rng.integers(1, k)), replace=False)
+        for b in bad:  # outliers
+            nu[3 * b : 3 * b + 3] += rng.normal(size=3) * 2.0
+        z = nu.reshape(k, 3)
+        det, cand = np.arange(k), np.arange(k)
+        out_det, _, n_drop = _joint_compatible(det, cand, None, z, np.zeros((k, 3)), None, None, cfg,
+                                               lambda d, c, S=S: S[np.ix_(np.concatenate([np.arange(3 * i, 3 * i + 3) for i in c]),
+                                                                          np.concatenate([np.arange(3 * i, 3 * i + 3) for i in c]))])
+        kept, dropped = _brute_force_drop_order(nu, S, lambda n: chi2.ppf(cfg.joint_confidence, 3 * n))
+        assert sorted(out_det.tolist()) == kept, trial
+        assert n_drop == len(dropped)
