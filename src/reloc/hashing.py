@@ -15,16 +15,18 @@ import numpy as np
 __all__ = ["TriangleHash"]
 
 _B = np.int64(1 << 14)  # bins per side: sides up to 16384 * bin_m
+_B_SMALL = np.int64(1 << 10)  # int32 keys: 1 + 3 * 10 bits
 
 
 class TriangleHash:
     """Hash table over T triangles, held as their sorted int64 keys. Triangle ids are positions in
     key order: :meth:`build` returns the permutation that puts the caller's rows in that order."""
 
-    def __init__(self, sorted_keys: np.ndarray, bin_m: float) -> None:
+    def __init__(self, sorted_keys: np.ndarray, bin_m: float, bins: int = int(_B)) -> None:
         if not bin_m > 0.0:
             raise ValueError(f"hash bin_m must be positive, got {bin_m}")
         self.bin_m = float(bin_m)
+        self.bins = np.int64(bins)
         self.keys = sorted_keys
 
     @classmethod
@@ -35,15 +37,21 @@ class TriangleHash:
         permutation from input rows to triangle ids (reorder per-triangle arrays with it)."""
         if not bin_m > 0.0:
             raise ValueError(f"hash bin_m must be positive, got {bin_m}")
-        keys = cls._keys(np.floor(sides_m / bin_m).astype(np.int64), handedness)
+        q = np.floor(sides_m / bin_m).astype(np.int64)
+        # int32 keys (faster sort, half the memory) when every side has fewer than 1024 bins
+        table = cls(np.empty(0, np.int64), bin_m, _B_SMALL if (q.size == 0 or q.max() < _B_SMALL) else _B)
+        keys = table._keys(q, handedness)
+        del q
         order = np.argsort(keys)  # deterministic for equal input
-        return cls(keys[order], bin_m), order
+        table.keys = keys[order]
+        return table, order
 
-    @staticmethod
-    def _keys(q: np.ndarray, hand: np.ndarray) -> np.ndarray:
-        q = np.clip(q, 0, _B - 1)
+    def _keys(self, q: np.ndarray, hand: np.ndarray) -> np.ndarray:
+        b = self.bins
+        q = np.clip(q, 0, b - 1)
         h = (np.asarray(hand) > 0).astype(np.int64)
-        return ((h * _B + q[..., 0]) * _B + q[..., 1]) * _B + q[..., 2]
+        keys = ((h * b + q[..., 0]) * b + q[..., 1]) * b + q[..., 2]
+        return keys.astype(np.int32) if b == _B_SMALL else keys
 
     @property
     def nbytes(self) -> int:
@@ -53,22 +61,19 @@ class TriangleHash:
     def __len__(self) -> int:
         return int(self.keys.size)
 
-    def query(
+    def _runs(
         self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Triangles within the bins touched by ``sides_m +- tol_m`` (Q, 3) with equal handedness.
-
-        Returns ``(query_index, triangle_id)`` pairs (unfiltered by the exact tolerance; the caller
-        compares sides, which it holds in float32 anyway).
-        """
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Runs of the sorted keys touched by each query: (query index, start, count) per run."""
         sides_m = np.asarray(sides_m, dtype=float).reshape(-1, 3)
+        empty = np.empty(0, np.int64)
+        if sides_m.shape[0] == 0:
+            return empty, empty, empty
         tol = np.broadcast_to(np.asarray(tol_m, dtype=float), (sides_m.shape[0],))[:, None]
         lo = np.floor((sides_m - tol) / self.bin_m).astype(np.int64)
         hi = np.floor((sides_m + tol) / self.bin_m).astype(np.int64)
-        n_a = int(np.max(hi[:, 0] - lo[:, 0])) + 1 if sides_m.size else 0
-        n_b = int(np.max(hi[:, 1] - lo[:, 1])) + 1 if sides_m.size else 0
-        if n_a == 0:
-            return np.empty(0, np.int64), np.empty(0, np.int64)
+        n_a = int(np.max(hi[:, 0] - lo[:, 0])) + 1
+        n_b = int(np.max(hi[:, 1] - lo[:, 1])) + 1
         # every (qa, qb) neighbour bin of every query at once: (Q, n_a * n_b)
         da, db = np.meshgrid(np.arange(n_a), np.arange(n_b), indexing="ij")
         qa = lo[:, 0:1] + da.ravel()[None, :]
@@ -79,12 +84,25 @@ class TriangleHash:
         hand = np.asarray(handedness)[qidx]
         start = np.stack([qa, qb, np.maximum(lo[qidx, 2], 0)], axis=1)
         stop = np.stack([qa, qb, hi[qidx, 2]], axis=1)
-        lo_parts = [np.searchsorted(self.keys, self._keys(start, hand), "left")]
-        hi_parts = [np.searchsorted(self.keys, self._keys(stop, hand), "right")]
-        qi_parts = [qidx]
-        starts = np.concatenate(lo_parts)
-        counts = np.concatenate(hi_parts) - starts
-        qidx = np.concatenate(qi_parts)
+        starts = np.searchsorted(self.keys, self._keys(start, hand), "left")
+        counts = np.searchsorted(self.keys, self._keys(stop, hand), "right") - starts
+        return qidx, starts, counts
+
+    def count(self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray) -> np.ndarray:
+        """Number of triangles (Q,) in the bins :meth:`query` would return for each query."""
+        qidx, _, counts = self._runs(sides_m, handedness, tol_m)
+        n_q = np.asarray(sides_m).reshape(-1, 3).shape[0]
+        return np.bincount(qidx, weights=counts, minlength=n_q).astype(np.int64)
+
+    def query(
+        self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Triangles within the bins touched by ``sides_m +- tol_m`` (Q, 3) with equal handedness.
+
+        Returns ``(query_index, triangle_id)`` pairs (unfiltered by the exact tolerance; the caller
+        compares sides, which it holds in float32 anyway).
+        """
+        qidx, starts, counts = self._runs(sides_m, handedness, tol_m)
         total = int(counts.sum())
         if total == 0:
             return np.empty(0, np.int64), np.empty(0, np.int64)

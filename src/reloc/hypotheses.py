@@ -84,25 +84,52 @@ def generate_hypotheses(
     side_tol_m: float,
     scale_tol: float,
     size_log_tol: float | None,
+    chunk_candidates: int = 1 << 21,
 ) -> Hypotheses:
-    """Candidate poses for local triangles ``tri`` against ``catalog``; see module doc."""
+    """Candidate poses for local triangles ``tri`` against ``catalog``; see module doc.
+    Hash candidates are processed in chunks of about ``chunk_candidates`` (bounded memory)."""
     tol = side_tol_m + scale_tol * tri.sides_m[:, 2]
     var, var_sides, src = relabel_variants(tri, tol)
     var_tol = tol[src]
-    qi, pos = catalog.hash.query(var.sides_m, var.handedness, var_tol)
-    if qi.size == 0:
+    if len(var) == 0:
         return _empty()
-    # np.take and per-column comparisons: several times faster than fancy indexing + np.all
-    rows = np.take(catalog.tri_order, pos)
-    cat_sides = np.take(catalog.tri_sides_m, rows, axis=0)
-    ref = np.take(var_sides, qi, axis=0)
-    vt = np.take(var_tol, qi)
-    d = np.abs(cat_sides - ref)
-    ok = (d[:, 0] <= vt) & (d[:, 1] <= vt) & (d[:, 2] <= vt)
-    qi, rows = qi[ok], rows[ok]
-    cat_v = np.take(catalog.tri_vertices, rows, axis=0)
+    sized = size_log_tol is not None and local_log_size is not None
+    size_lo = size_hi = None
+    if sized:
+        # quantised size window of every variant vertex: a superset of the exact check below
+        loc_q = (np.asarray(local_log_size, float) - catalog.size_q_lo) / catalog.size_q_step
+        tol_q = size_log_tol / catalog.size_q_step
+        size_lo = np.clip(np.floor(loc_q - tol_q) - 1, 0, 255).astype(np.uint8)[var.vertices]
+        size_hi = np.clip(np.ceil(loc_q + tol_q) + 1, 0, 255).astype(np.uint8)[var.vertices]
+    n_raw = catalog.hash.count(var.sides_m, var.handedness, var_tol)
+    bounds = np.searchsorted(np.cumsum(n_raw), np.arange(chunk_candidates, int(n_raw.sum()), chunk_candidates))
+    parts = []
+    for sl in np.split(np.arange(len(var)), np.unique(bounds)):
+        if sl.size == 0:
+            continue
+        qi, pos = catalog.hash.query(var.sides_m[sl], var.handedness[sl], var_tol[sl])
+        if qi.size == 0:
+            continue
+        qi = sl[qi]
+        if sized:
+            cq = np.take(catalog.tri_size_q, pos, axis=0)
+            lo, hi = np.take(size_lo, qi, axis=0), np.take(size_hi, qi, axis=0)
+            ok = (cq[:, 0] >= lo[:, 0]) & (cq[:, 0] <= hi[:, 0]) & (cq[:, 1] >= lo[:, 1])
+            ok &= (cq[:, 1] <= hi[:, 1]) & (cq[:, 2] >= lo[:, 2]) & (cq[:, 2] <= hi[:, 2])
+            qi, pos = qi[ok], pos[ok]
+        # np.take and per-column comparisons: several times faster than fancy indexing + np.all
+        cat_sides = np.take(catalog.tri_sides_m, pos, axis=0)
+        ref = np.take(var_sides, qi, axis=0)
+        vt = np.take(var_tol, qi)
+        d = np.abs(cat_sides - ref)
+        ok = (d[:, 0] <= vt) & (d[:, 1] <= vt) & (d[:, 2] <= vt)
+        parts.append((qi[ok], pos[ok]))
+    if not parts:
+        return _empty()
+    qi = np.concatenate([q for q, _ in parts])
+    cat_v = np.take(catalog.tri_vertices, np.concatenate([p for _, p in parts]), axis=0)
     loc_v = np.take(var.vertices, qi, axis=0)
-    if size_log_tol is not None and local_log_size is not None:
+    if sized:
         d = np.abs(np.take(catalog.log_size, cat_v) - np.take(local_log_size, loc_v))
         ok = (d[:, 0] <= size_log_tol) & (d[:, 1] <= size_log_tol) & (d[:, 2] <= size_log_tol)
         cat_v, loc_v, qi = cat_v[ok], loc_v[ok], qi[ok]

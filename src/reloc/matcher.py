@@ -6,12 +6,14 @@ The composer reads like the reference design (section II.B), with the fixes the 
 2. look each one up in the catalog's geometric hash (sides within tolerance, same handedness),
    reject candidates whose rock sizes disagree, fit a 2D similarity (Procrustes) to the three
    vertex pairs, reject scales far from 1;
-3. vote the candidate poses into (heading, position) bins; verify the most-voted bins: inliers
-   under the candidate, re-fit on the inliers (Umeyama), re-score; more inliers win, lower RMSE
-   breaks ties;
+3. rank every candidate pose by a coarse score (local rocks landing near a size-compatible
+   catalog rock, read from a grid), group them in (heading, position) bins and verify the best
+   bins: inliers under the candidate, re-fit on the inliers (Umeyama), re-score; more inliers
+   win, lower RMSE breaks ties;
 4. accept the best pose only if its inlier count is improbable for a wrong pose at the catalog's
-   local density (binomial tail x number of hypotheses tried); stop early once it is
-   overwhelmingly so.
+   local density (Poisson-binomial tail x number of hypotheses generated, with a
+   sequential-testing weight), checked after every batch, so the search stops at the first
+   convincing pose.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from reloc.match_result import MatchResult, similarity_covariance
 from reloc.procrustes import Similarity2D, umeyama_2d
 from reloc.sampling import knn_triangles
 from reloc.scoring import (
+    CoarseScorer,
     Inliers,
     log10_binomial_tail,
     score_points,
@@ -55,15 +58,16 @@ class MatcherConfig:
     ``size_ratio_max``: largest allowed ratio of matched rock diameters (None: no size check).
     ``local_neighbours``: k for local triangles. ``batch_triangles``: local triangles in the first batch, doubling up to
     ``max_batch_triangles``;
-    ``verify_per_batch``: vote bins verified per batch; ``first_stage_factor``: inlier radius
+    ``verify_per_batch``: pose bins verified per batch (best coarse score first); ``first_stage_factor``: inlier radius
     multiplier of the first scoring stage (a 3-point pose is noisier than a re-fitted one);
     ``refits``: least-squares re-fit/re-score rounds; ``polish_sigmas``: final fit on pairs
     closer than this many sigma; ``growth_reach_m``: distances from the hypothesis' triangle
     within which inliers are collected and re-fitted before the whole map is scored;
     ``density_radius_m``: radius of the local catalog-density estimate (at least 4 inlier radii);
     ``min_inliers``: fewest inliers ever accepted. ``max_log10_false_alarm``: acceptance
-    threshold on log10(expected number of wrong poses this good); ``early_exit_log10``: stop the
-    search below this. ``metric``: both maps are metric, so the final least-squares re-fit is
+    threshold on log10(bound on the chance that a wrong pose is accepted), checked after every
+    batch (the search stops once it is met); ``early_exit_log10``: also stop in the middle of a
+    batch below this. ``metric``: both maps are metric, so the final least-squares re-fit is
     rigid (scale 1; a 3-point similarity still checks the scale of every candidate against 1
     within ``scale_tol``); False re-fits a similarity. ``seed``: order in which local triangles
     are tried.
@@ -122,9 +126,14 @@ class _Search:
 
     n_hypotheses: int = 0
     n_verified: int = 0
+    stage: int = 0
+    last_stage: bool = False
     keys: list[np.ndarray] = field(default_factory=list)
     hyps: list[Hypotheses] = field(default_factory=list)
-    verified: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    coarse: list[np.ndarray] = field(default_factory=list)
+    masks: np.ndarray | None = None
+    verified_keys: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    verified_best: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
     best: tuple[Similarity2D, Inliers] | None = None
     size_check: tuple[np.ndarray, np.ndarray, float] | None = None
     size_fraction: float = 1.0
@@ -138,6 +147,18 @@ class ConstellationMatcher:
         self.catalog = catalog
         self.config = config if config is not None else MatcherConfig()
         self._cat_log_size_sorted = np.sort(catalog.log_size)
+        self._coarse: CoarseScorer | None = None
+
+    @property
+    def coarse_scorer(self) -> CoarseScorer:
+        """The grid that ranks hypotheses (built on first use: it depends on ``sigma_m``)."""
+        if self._coarse is None:
+            cfg = self.config
+            tol = None if cfg.size_ratio_max is None else math.log(cfg.size_ratio_max)
+            self._coarse = CoarseScorer(
+                self.catalog.xy, self.catalog.log_size, cfg.inlier_radius_m, tol
+            )
+        return self._coarse
 
     def match(
         self, local_xy: np.ndarray, local_size: np.ndarray | None = None, prior: MatchPrior | None = None
@@ -157,6 +178,8 @@ class ConstellationMatcher:
         radius = float(np.max(np.hypot(*(xy - center).T))) + cfg.inlier_radius_m
         order = np.random.default_rng(cfg.seed).permutation(len(tri))
         st = _Search()
+        coarse = self.coarse_scorer
+        st.masks = coarse.masks(log_size, xy.shape[0])
         size_log_tol = None if cfg.size_ratio_max is None else math.log(cfg.size_ratio_max)
         if size_log_tol is not None and log_size is not None:
             st.size_check = (log_size, self.catalog.log_size, size_log_tol)
@@ -166,9 +189,11 @@ class ConstellationMatcher:
         theta_bin = float(np.clip(2.5 * cfg.side_tol_m / cfg.side_tol_sigmas / 1.5, 0.05, 0.5))
         xy_bin = max(0.5, 8.0 * cfg.sigma_m, theta_bin * (radius - cfg.inlier_radius_m))
         start, size = 0, cfg.batch_triangles
-        while start < len(tri):
+        while start < order.size:
             batch = tri.take(order[start : start + size])
             start, size = start + size, min(2 * size, cfg.max_batch_triangles)
+            st.stage += 1
+            st.last_stage = start >= order.size
             h = generate_hypotheses(
                 self.catalog, xy, log_size, batch,
                 side_tol_m=cfg.side_tol_m, scale_tol=cfg.scale_tol,
@@ -180,8 +205,14 @@ class ConstellationMatcher:
             if len(h):
                 st.keys.append(pose_bins(h, center, theta_bin, xy_bin))
                 st.hyps.append(h)
-                self._verify_top(xy, st)
-            if st.done:
+                st.coarse.append(coarse.score(h.theta_rad, h.scale, h.translation, xy, st.masks))
+                self._verify_top(xy, center, st)
+            # sequential acceptance: stop as soon as the best pose is convincing at this stage
+            if st.done or (
+                st.best is not None
+                and st.best[1].count >= cfg.min_inliers
+                and self._log10_fa(st, xy)[0] <= cfg.max_log10_false_alarm
+            ):
                 break
         if st.best is None:
             return None
@@ -220,23 +251,37 @@ class ConstellationMatcher:
         k = lab.keep
         return LocalTriangles(lab.vertices[k].astype(np.int64), lab.sides_m[k], lab.handedness[k])
 
-    def _verify_top(self, xy: np.ndarray, st: _Search) -> None:
-        """Verify the most-voted bins not verified yet (two-stage scoring, see module doc)."""
+    def _verify_top(self, xy: np.ndarray, center: np.ndarray, st: _Search) -> None:
+        """Verify the best hypotheses (two-stage scoring, see module doc). Every hypothesis has a
+        coarse score (local rocks near a size-compatible catalog rock, from the grid); hypotheses
+        are grouped in pose bins, and the bins with the best coarse score are verified at their
+        best-scored member. A bin is verified again only when a member with a
+        better coarse score arrives."""
         cfg = self.config
-        keys = np.concatenate(st.keys)
-        hyp_all = _concat(st.hyps) if len(st.hyps) > 1 else st.hyps[0]
         if len(st.hyps) > 1:
-            st.hyps[:] = [hyp_all]
-            st.keys[:] = [keys]
-        # sort by (bin, -span): the first hypothesis of each bin is its best-conditioned one
-        order = np.lexsort((-hyp_all.span_m, keys))
-        uniq, first, counts = np.unique(keys[order], return_index=True, return_counts=True)
-        cand = np.flatnonzero(~np.isin(uniq, st.verified))
+            st.hyps[:] = [_concat(st.hyps)]
+            st.keys[:] = [np.concatenate(st.keys)]
+            st.coarse[:] = [np.concatenate(st.coarse)]
+        hyp_all, keys, score = st.hyps[0], st.keys[0], st.coarse[0]
+        # sort by (bin, -score, -span): the first hypothesis of each bin is its best
+        order = np.lexsort((-hyp_all.span_m, -score, keys))
+        uniq, first = np.unique(keys[order], return_index=True)
+        best = score[order[first]]
+        seen = np.full(uniq.size, -1, np.int64)
+        if st.verified_keys.size:
+            at = np.minimum(np.searchsorted(st.verified_keys, uniq), st.verified_keys.size - 1)
+            hit = st.verified_keys[at] == uniq
+            seen[hit] = st.verified_best[at[hit]]
+        cand = np.flatnonzero(best > seen)
         if cand.size == 0:
             return
-        # most votes first; ties by bin key (deterministic)
-        cand = cand[np.argsort(-counts[cand], kind="stable")][: cfg.verify_per_batch]
-        st.verified = np.concatenate([st.verified, uniq[cand]])
+        # best coarse score first; ties by bin key (deterministic)
+        cand = cand[np.argsort(-best[cand], kind="stable")][: cfg.verify_per_batch]
+        # remember the coarse score each bin was verified at (sorted keys, for searchsorted)
+        vk = np.concatenate([st.verified_keys, uniq[cand]])
+        vb = np.concatenate([st.verified_best, best[cand]])
+        vk, first_at = np.unique(vk[::-1], return_index=True)  # the newest entry of each key
+        st.verified_keys, st.verified_best = vk, vb[::-1][first_at]
         for b in cand:
             i = int(order[first[b]])
             sim = Similarity2D(float(hyp_all.theta_rad[i]), hyp_all.translation[i], float(hyp_all.scale[i]))
@@ -266,15 +311,15 @@ class ConstellationMatcher:
     def _verify_one(
         self, xy: np.ndarray, sim: Similarity2D, anchor_xy: np.ndarray, st: _Search
     ) -> tuple[Similarity2D, Inliers] | None:
-        """Two-stage scoring of one hypothesis; returns the re-fitted pose and its inliers."""
+        """Two-stage scoring of one hypothesis (guided growth, first stage, re-fits, polish);
+        returns the re-fitted pose and its inliers, or None."""
         cfg = self.config
         r = cfg.inlier_radius_m
         # guided growth: a 3-point pose is accurate near its triangle only, so first collect
         # inliers close to it, re-fit, and widen the reach
         reach = np.hypot(*(xy - anchor_xy).T)
         for reach_m in cfg.growth_reach_m:
-            sel = np.flatnonzero(reach <= reach_m)
-            inl = self._score(sim, xy, sel, cfg.first_stage_factor * r, st)
+            inl = self._score(sim, xy, np.flatnonzero(reach <= reach_m), cfg.first_stage_factor * r, st)
             if inl.count >= 3:
                 sim = self._fit(xy, inl)
         # first stage with a wider radius: the pose is still noisier than the final one
@@ -300,29 +345,43 @@ class ConstellationMatcher:
             return None
         return sim, inl
 
-    def _chance(self, sim: Similarity2D, xy: np.ndarray, inl: Inliers, st: _Search) -> float:
-        """Mean chance that a local rock, placed by ``sim``, lands on a size-compatible catalog rock.
+    def _chance(self, sim: Similarity2D, xy: np.ndarray, st: _Search) -> np.ndarray:
+        """Chance (M,) that each local rock, placed by ``sim``, lands on a size-compatible catalog rock.
 
         The catalog density is measured around every transformed local rock (radius
-        ``density_radius_m``, the rock an inlier matched excluded), so clustered catalogs are not
-        credited with the sparse areas between clusters. Using the mean chance in a binomial
-        tail bounds the exact heterogeneous (Poisson-binomial) tail from above.
+        ``density_radius_m``, at least 4 inlier radii), so clustered catalogs are not credited
+        with the sparse areas between clusters. Rocks a local rock matched are counted too (a
+        conservative choice: leaving them out makes an inlier in a sparse area look impossible
+        by chance), and two pseudo-rocks at the catalog's mean density regularise small counts.
+        ``f``, the fraction of catalog rocks with a size compatible with the local rocks', is
+        their mean (per-rock fractions would lower the mean chance: not conservative).
         """
         cfg = self.config
-        rd = max(cfg.density_radius_m, 4.0 * cfg.inlier_radius_m)
-        counts = self.catalog.tree.query_ball_point(sim.apply(xy), r=rd, return_length=True).astype(float)
-        counts[inl.local_idx] -= 1.0
-        rho = np.maximum(counts, 0.0) / (math.pi * rd * rd)
-        area = math.pi * cfg.inlier_radius_m**2
-        return float(np.mean(-np.expm1(-rho * st.size_fraction * area)))
+        r = cfg.inlier_radius_m
+        rd = max(cfg.density_radius_m, 4.0 * r)
+        pts = sim.apply(xy)
+        tree = self.catalog.tree
+        disc = tree.query_ball_point(pts, r=rd, return_length=True)
+        pseudo = 2.0
+        rho = (disc + pseudo) / (math.pi * rd * rd + pseudo / self.catalog.density_per_m2)
+        return -np.expm1(-rho * st.size_fraction * math.pi * r * r)
 
     def _log10_fa(self, st: _Search, xy: np.ndarray) -> tuple[float, float]:
-        """(log10 expected number of wrong poses as good as the best, chance probability)."""
+        """(log10 bound on the chance that a wrong pose is accepted, mean chance probability).
+
+        Under a wrong pose the inlier count beyond the 3 rocks of the generating triangle is
+        bounded by Binomial(M - 3, mean p_i) (Hoeffding), Bonferroni over the hypotheses generated
+        so far, and a sequential-testing weight: the search may stop after stage s (of doubling batches) with weight 2^-(s+1), and
+        after its last stage with weight 1/2; the weights sum to at most 1.
+        """
         sim, inl = st.best
-        p = self._chance(sim, xy, inl, st)
-        # the 3 rocks of the generating triangle are inliers by construction
+        p = float(np.mean(self._chance(sim, xy, st)))
+        # the 3 rocks of the generating triangle are inliers by construction (whichever rocks
+        # end up as inliers after the re-fits, 3 of them are not evidence)
         tail = log10_binomial_tail(inl.count - 3, xy.shape[0] - 3, p)
-        return tail + math.log10(max(st.n_hypotheses, 1)), p
+        log10_weight = -(1 if st.last_stage else st.stage + 1) * math.log10(2.0)
+        lfa = tail + math.log10(max(st.n_hypotheses, 1)) - log10_weight
+        return lfa, p
 
 
 def _validate(local_xy: np.ndarray, local_size: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:

@@ -18,9 +18,11 @@ from scipy.spatial import cKDTree
 from scipy.special import gammaln
 
 __all__ = [
+    "CoarseScorer",
     "Inliers",
     "chance_probability",
     "log10_binomial_tail",
+    "log10_poisson_binomial_tail",
     "score_points",
     "size_compatible_fraction",
 ]
@@ -87,9 +89,16 @@ def chance_probability(density_per_m2: float, radius_m: float, size_fraction: fl
 
 def size_compatible_fraction(local_log_size: np.ndarray, catalog_log_size_sorted: np.ndarray, log_tol: float) -> float:
     """Mean over local rocks of the fraction of catalog rocks whose log size is within ``log_tol``."""
+    return float(np.mean(size_compatible_fractions(local_log_size, catalog_log_size_sorted, log_tol)))
+
+
+def size_compatible_fractions(
+    local_log_size: np.ndarray, catalog_log_size_sorted: np.ndarray, log_tol: float
+) -> np.ndarray:
+    """Per local rock (M,): the fraction of catalog rocks whose log size is within ``log_tol``."""
     lo = np.searchsorted(catalog_log_size_sorted, local_log_size - log_tol, "left")
     hi = np.searchsorted(catalog_log_size_sorted, local_log_size + log_tol, "right")
-    return float(np.mean(hi - lo) / max(catalog_log_size_sorted.size, 1))
+    return (hi - lo) / max(catalog_log_size_sorted.size, 1)
 
 
 def log10_binomial_tail(k: int, n: int, p: float) -> float:
@@ -103,3 +112,132 @@ def log10_binomial_tail(k: int, n: int, p: float) -> float:
     logpmf = gammaln(n + 1) - gammaln(j + 1) - gammaln(n - j + 1) + j * math.log(p) + (n - j) * math.log1p(-p)
     top = float(np.max(logpmf))
     return (top + math.log(float(np.sum(np.exp(logpmf - top))))) / math.log(10.0)
+
+
+def log10_poisson_binomial_tail(k: int, p: np.ndarray) -> float:
+    """log10 P(X >= k) for X the number of successes of independent trials with chances ``p`` (n,).
+
+    Exact (dynamic programme over the trials, O(n k)); 0 when k <= 0, -inf when k > n. With
+    equal chances it equals :func:`log10_binomial_tail`; with unequal ones it is never larger
+    than the binomial tail at the mean chance once k exceeds the mean by one (Hoeffding 1956).
+    """
+    p = np.clip(np.asarray(p, dtype=float).ravel(), 0.0, 1.0)
+    if k <= 0:
+        return 0.0
+    if k > p.size:
+        return -math.inf
+    # natural logs of P(j successes so far) for j < k, and of P(k or more so far)
+    with np.errstate(divide="ignore"):
+        log_p, log_q = np.log(p), np.log1p(-p)
+    dist = np.full(k, -np.inf)
+    dist[0] = 0.0
+    tail = -np.inf
+    for lp, lq in zip(log_p, log_q):
+        tail = np.logaddexp(tail, dist[-1] + lp)
+        dist[1:] = np.logaddexp(dist[1:] + lq, dist[:-1] + lp)
+        dist[0] += lq
+    return float(tail) / math.log(10.0)
+
+
+class CoarseScorer:
+    """Counts, for many poses at once, the local rocks that land near a size-compatible catalog rock.
+
+    A dense grid over the catalog (cell ``cell_m``) holds one bit per size class (8 classes over
+    the catalog's log sizes) for every cell that a catalog rock of that class comes within
+    ``radius_m`` of. Scoring H poses of M rocks is then H x M grid reads: cheap enough to rank
+    every hypothesis before the exact (KD-tree) verification of the best ones. The grid is
+    conservative (a cell is marked when any of its points is within the radius), so a local rock
+    within ``radius_m`` of a compatible catalog rock always counts.
+    """
+
+    def __init__(
+        self,
+        xy_m: np.ndarray,
+        log_size: np.ndarray,
+        radius_m: float,
+        log_tol: float | None,
+        *,
+        max_cells: int = 1 << 25,
+    ) -> None:
+        xy_m = np.asarray(xy_m, float)
+        self.log_tol = log_tol
+        self.origin = xy_m.min(axis=0) - radius_m
+        span = np.ptp(xy_m, axis=0) + 2.0 * radius_m
+        cell = radius_m / 4.0
+        cell = max(cell, float(np.sqrt(span[0] * span[1] / max_cells)))
+        self.cell_m = cell
+        self.shape = (int(span[0] // cell) + 1, int(span[1] // cell) + 1)
+        ls = np.asarray(log_size, float)
+        # 8 classes over the central 98 % of log sizes (the outer classes take the rest)
+        q_lo, q_hi = np.percentile(ls, [1.0, 99.0])
+        self.class_lo = float(q_lo)
+        self.class_w = max(float(q_hi - q_lo) / 8.0, 1e-9)
+        cls = np.clip(((ls - self.class_lo) / self.class_w).astype(np.int64), 0, 7)
+        grid = np.zeros(self.shape[0] * self.shape[1], np.uint8)
+        reach = int(np.ceil(radius_m / cell + 0.7072)) + 1
+        oi, oj = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
+        ij = np.floor((xy_m - self.origin) / cell).astype(np.int64)
+        for di, dj in zip(oi.ravel(), oj.ravel()):
+            # distance from the rock to the nearest point of cell (i+di, j+dj)
+            ci, cj = ij[:, 0] + di, ij[:, 1] + dj
+            ex = np.maximum(0.0, np.maximum(ci * cell - (xy_m[:, 0] - self.origin[0]), (xy_m[:, 0] - self.origin[0]) - (ci + 1) * cell))
+            ey = np.maximum(0.0, np.maximum(cj * cell - (xy_m[:, 1] - self.origin[1]), (xy_m[:, 1] - self.origin[1]) - (cj + 1) * cell))
+            ok = (ex * ex + ey * ey <= radius_m * radius_m) & (ci >= 0) & (cj >= 0)
+            ok &= (ci < self.shape[0]) & (cj < self.shape[1])
+            flat = ci[ok] * self.shape[1] + cj[ok]
+            bits = (np.uint8(1) << cls[ok].astype(np.uint8)).astype(np.uint8)
+            for b in range(8):  # repeated cells: assignment of one bit is idempotent
+                sel = bits == (1 << b)
+                if np.any(sel):
+                    grid[flat[sel]] |= np.uint8(1 << b)
+        self.grid = grid
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the grid."""
+        return int(self.grid.nbytes)
+
+    def masks(self, local_log_size: np.ndarray | None, n: int) -> np.ndarray:
+        """Size-class masks (n,) uint8 of the local rocks: the classes within ``log_tol`` of each."""
+        if local_log_size is None or self.log_tol is None:
+            return np.full(n, 0xFF, np.uint8)
+        ls = np.asarray(local_log_size, float)
+        lo = np.floor((ls - self.log_tol - self.class_lo) / self.class_w).astype(np.int64)
+        hi = np.floor((ls + self.log_tol - self.class_lo) / self.class_w).astype(np.int64)
+        lo, hi = np.clip(lo, 0, 7), np.clip(hi, 0, 7)
+        bits = np.arange(8)
+        sel = (bits[None, :] >= lo[:, None]) & (bits[None, :] <= hi[:, None])
+        return (sel * (1 << bits)[None, :]).sum(axis=1).astype(np.uint8)
+
+    def score(
+        self,
+        theta_rad: np.ndarray,
+        scale: np.ndarray,
+        translation: np.ndarray,
+        local_xy: np.ndarray,
+        masks: np.ndarray,
+        chunk: int = 1 << 20,
+    ) -> np.ndarray:
+        """Rocks (H,) of ``local_xy`` (M, 2) within the radius of a compatible catalog rock under
+        each of H poses ``world = scale R(theta) local + translation``."""
+        h = theta_rad.size
+        out = np.zeros(h, np.int64)
+        m = local_xy.shape[0]
+        if h == 0 or m == 0:
+            return out
+        step = max(1, chunk // m)
+        lx = (local_xy[:, 0] / self.cell_m)[None, :]
+        ly = (local_xy[:, 1] / self.cell_m)[None, :]
+        for a in range(0, h, step):
+            b = min(h, a + step)
+            sc = scale[a:b, None]
+            c, s = sc * np.cos(theta_rad[a:b, None]), sc * np.sin(theta_rad[a:b, None])
+            tx = ((translation[a:b, 0] - self.origin[0]) / self.cell_m)[:, None]
+            ty = ((translation[a:b, 1] - self.origin[1]) / self.cell_m)[:, None]
+            ci = np.floor(c * lx - s * ly + tx).astype(np.int64)
+            cj = np.floor(s * lx + c * ly + ty).astype(np.int64)
+            inside = (ci >= 0) & (cj >= 0) & (ci < self.shape[0]) & (cj < self.shape[1])
+            flat = np.where(inside, ci * self.shape[1] + cj, 0)
+            hit = (np.take(self.grid, flat) & masks[None, :]) != 0
+            out[a:b] = np.count_nonzero(hit & inside, axis=1)
+        return out

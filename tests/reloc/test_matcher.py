@@ -162,6 +162,26 @@ def test_bad_catalogs_raise():
         MatcherConfig(sigma_m=-1.0)
 
 
+def test_catalog_rows_are_in_hash_order(catalog):
+    # the key of every row's sides is the hash key at the same position
+    q = np.floor(catalog.tri_sides_m.astype(float) / catalog.hash.bin_m).astype(np.int64)
+    keys = catalog.hash._keys(q, np.ones(q.shape[0]))
+    hand = np.where(catalog.hash.keys == keys, 1, -1)
+    assert np.array_equal(catalog.hash._keys(q, hand), catalog.hash.keys)
+    # rows hold the sides of the triangles their vertices form, and the vertices' size codes
+    rows = np.random.default_rng(0).choice(catalog.n_triangles, 200, replace=False)
+    v = catalog.tri_vertices[rows]
+    xy = catalog.xy
+    sides = np.sort(np.stack([np.hypot(*(xy[v[:, i]] - xy[v[:, j]]).T) for i, j in ((1, 2), (0, 2), (0, 1))], 1), 1)
+    assert np.allclose(sides, catalog.tri_sides_m[rows], atol=1e-3)
+    code = np.round((catalog.log_size[v] - catalog.size_q_lo) / catalog.size_q_step)
+    assert np.array_equal(code, catalog.tri_size_q[rows])
+    # count() agrees with the candidates query() returns
+    qs, qh = catalog.tri_sides_m[rows[:20]].astype(float), np.ones(20)
+    qi, _ = catalog.hash.query(qs, qh, 0.2)
+    assert np.array_equal(catalog.hash.count(qs, qh, 0.2), np.bincount(qi, minlength=20))
+
+
 def test_catalog_index_is_compact(catalog):
     assert catalog.tri_vertices.dtype == np.int32 and catalog.tri_sides_m.dtype == np.float32
     assert catalog.n_triangles > 5 * len(catalog)

@@ -13,7 +13,13 @@ from scipy.stats import binom
 
 from reloc.match_result import similarity_covariance
 from reloc.procrustes import Similarity2D, rotation_2d, similarity_batch, umeyama_2d
-from reloc.scoring import chance_probability, log10_binomial_tail, score_points
+from reloc.scoring import (
+    CoarseScorer,
+    chance_probability,
+    log10_binomial_tail,
+    log10_poisson_binomial_tail,
+    score_points,
+)
 
 
 @settings(max_examples=120, deadline=None)
@@ -105,3 +111,54 @@ def test_inliers_are_one_to_one():
     assert inl.local_idx.tolist() == [1]  # the closer of two claims on rock 0; rock 1 too far
     assert inl.catalog_idx.tolist() == [0]
     assert rotation_2d(0.0).tolist() == [[1.0, 0.0], [0.0, 1.0]]
+
+
+def test_poisson_binomial_tail_is_exact_and_below_the_mean_binomial():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        n = int(rng.integers(1, 9))
+        p = rng.uniform(0.0, 0.6, n)
+        # brute force over all 2^n outcomes
+        outcomes = np.array(np.meshgrid(*[[0, 1]] * n, indexing="ij")).reshape(n, -1).T
+        prob = np.prod(np.where(outcomes == 1, p, 1.0 - p), axis=1)
+        succ = outcomes.sum(axis=1)
+        for k in range(n + 2):
+            ref = prob[succ >= k].sum()
+            got = log10_poisson_binomial_tail(k, p)
+            assert got == (-math.inf if ref == 0 else pytest.approx(math.log10(ref), abs=1e-9))
+    # equal chances: the binomial tail; unequal ones: never above the binomial at the mean chance
+    assert log10_poisson_binomial_tail(21, np.full(28, 0.26)) == pytest.approx(log10_binomial_tail(21, 28, 0.26))
+    p = np.r_[np.full(14, 0.4), np.full(14, 0.12)]
+    assert log10_poisson_binomial_tail(21, p) < log10_binomial_tail(21, 28, float(p.mean()))
+    # tiny tails do not underflow
+    assert log10_poisson_binomial_tail(300, np.full(400, 0.01)) == pytest.approx(
+        log10_binomial_tail(300, 400, 0.01), abs=1e-6
+    )
+
+
+def test_coarse_scorer_never_misses_an_exact_inlier():
+    rng = np.random.default_rng(4)
+    cat = rng.uniform(0, 60, (1000, 2))
+    cat_ls = rng.normal(np.log(0.3), 0.5, 1000)
+    tol = math.log(1.6)
+    scorer = CoarseScorer(cat, cat_ls, 0.5, tol)
+    loc = rng.uniform(-8, 8, (30, 2))
+    loc_ls = rng.normal(np.log(0.3), 0.5, 30)
+    theta = rng.uniform(-np.pi, np.pi, 300)
+    trans = rng.uniform(5, 55, (300, 2))
+    got = scorer.score(theta, np.ones(300), trans, loc, scorer.masks(loc_ls, 30))
+    tree = cKDTree(cat)
+    exact = np.zeros(300, int)
+    for j in range(300):
+        w = Similarity2D(float(theta[j]), trans[j], 1.0).apply(loc)
+        near = tree.query_ball_point(w, 0.5)
+        exact[j] = sum(any(abs(cat_ls[c] - loc_ls[i]) <= tol for c in near[i]) for i in range(30))
+    assert np.all(got >= exact)
+    assert np.mean(got) < 2.0 * np.mean(exact) + 1.0  # a superset, but not a loose one
+    # the true pose of rocks cut from the catalog scores every rock
+    idx = rng.choice(1000, 30, replace=False)
+    sim = Similarity2D(0.7, np.array([3.0, -2.0]), 1.0)
+    rot = rotation_2d(0.7)
+    local = (cat[idx] - sim.translation) @ rot  # R^T (w - t)
+    full = scorer.score(np.array([0.7]), np.ones(1), sim.translation[None], local, scorer.masks(cat_ls[idx], 30))
+    assert full[0] == 30

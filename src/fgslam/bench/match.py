@@ -28,6 +28,7 @@ from fgslam.bench.match_scenarios import (
     detector_query,
     make_field,
     make_query,
+    runner_query,
 )
 
 __all__ = ["MatchBenchConfig", "result_tables", "run_match_bench"]
@@ -43,18 +44,26 @@ Progress = Callable[[str, int], Callable[[], None]]
 @dataclass(frozen=True)
 class MatchBenchConfig:
     """Benchmark settings; ``queries`` per (size, layout, sigma); astroalign runs on the first
-    ``astro_queries`` of them for sizes in ``astro_sizes``."""
+    ``astro_queries`` of them for sizes in ``astro_sizes`` (a try longer than ``astro_timeout_s``
+    of wall time counts as no answer). The runner-like setting matches ``runner_queries`` local
+    maps of 80 rocks against a ``runner_size``-rock catalog with a prior of
+    ``runner_prior_radius_m``, as the relocalizer does."""
 
     sizes: tuple[int, ...] = (300, 3000, 100_000)
     layouts: tuple[str, ...] = ("uniform", "clustered")
     sigmas_m: tuple[float, ...] = (0.05, 0.2)
     queries: int = 500
-    outside_queries: int = 500
+    outside_queries: int = 1000
     detector_size: int = 3000
     detector_queries: int = 300
     detector_sigma_m: float = 0.05
-    astro_queries: int = 100
+    astro_queries: int = 20
     astro_sizes: tuple[int, ...] = (300, 3000)
+    astro_timeout_s: float = 30.0
+    runner_size: int = 2259
+    runner_queries: int = 300
+    runner_sigma_m: float = 0.12
+    runner_prior_radius_m: float = 5.0
     build_size: int = 1_000_000
     seed: int = 0
 
@@ -63,7 +72,7 @@ def quick_config(seed: int = 0) -> MatchBenchConfig:
     """A small run (about a minute) for smoke tests."""
     return MatchBenchConfig(
         sizes=(300, 3000), layouts=("uniform", "clustered"), sigmas_m=(0.05, 0.2), queries=40,
-        outside_queries=40, detector_queries=30, astro_queries=8, astro_sizes=(300,),
+        outside_queries=40, detector_queries=30, astro_queries=4, astro_sizes=(300,), runner_queries=30,
         build_size=100_000, seed=seed,
     )
 
@@ -88,20 +97,51 @@ def _ours(matcher, q: Query) -> dict:
     return {"found": True, "time_s": dt, "cpu_s": cpu, "pos_err_m": e, "head_err_deg": h, "n_inliers": res.n_inliers}
 
 
-def _theirs(catalog_xy: np.ndarray, q: Query, tol_m: float) -> dict:
+def _theirs_worker(catalog_xy: np.ndarray, local_xy: np.ndarray, tol_m: float) -> tuple[np.ndarray | None, float]:
+    """astroalign's transform params (3, 3) (None: it found none) and its CPU time."""
     import astroalign
 
     astroalign.PIXEL_TOL = tol_m  # same inlier tolerance as ours, in metres
-    t0, c0 = time.perf_counter(), time.thread_time()
+    c0 = time.thread_time()
     try:
-        tf, _ = astroalign.find_transform(q.local_xy, catalog_xy, max_control_points=catalog_xy.shape[0])
+        tf, _ = astroalign.find_transform(local_xy, catalog_xy, max_control_points=catalog_xy.shape[0])
     except Exception:  # noqa: BLE001 -- MaxIterError, ValueError...: astroalign found no transform
-        return {"found": False, "time_s": time.perf_counter() - t0, "cpu_s": time.thread_time() - c0}
-    dt, cpu = time.perf_counter() - t0, time.thread_time() - c0
-    p = tf.params
-    theta = float(np.arctan2(p[1, 0], p[0, 0]))
-    e, h = _errors(theta, p[:2, 2], float(np.hypot(p[0, 0], p[1, 0])), q)
-    return {"found": True, "time_s": dt, "cpu_s": cpu, "pos_err_m": e, "head_err_deg": h, "n_inliers": 0}
+        return None, time.thread_time() - c0
+    return np.asarray(tf.params), time.thread_time() - c0
+
+
+class _Astro:
+    """astroalign in a forked worker process, so that a try can be abandoned after a timeout."""
+
+    def __init__(self, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        self.pool = None
+
+    def __call__(self, catalog_xy: np.ndarray, q: Query, tol_m: float) -> dict:
+        import multiprocessing
+
+        if self.pool is None:
+            self.pool = multiprocessing.get_context("fork").Pool(1)
+        t0 = time.perf_counter()
+        job = self.pool.apply_async(_theirs_worker, (catalog_xy, q.local_xy, tol_m))
+        try:
+            params, cpu = job.get(timeout=self.timeout_s)
+        except multiprocessing.TimeoutError:
+            self.close()
+            dt = time.perf_counter() - t0
+            return {"found": False, "time_s": dt, "cpu_s": dt, "timed_out": True}
+        dt = time.perf_counter() - t0
+        if params is None:
+            return {"found": False, "time_s": dt, "cpu_s": cpu}
+        theta = float(np.arctan2(params[1, 0], params[0, 0]))
+        e, h = _errors(theta, params[:2, 2], float(np.hypot(params[0, 0], params[1, 0])), q)
+        return {"found": True, "time_s": dt, "cpu_s": cpu, "pos_err_m": e, "head_err_deg": h, "n_inliers": 0}
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+            self.pool = None
 
 
 def _summary(rows: list[dict], sigma_m: float | None = None) -> dict:
@@ -179,7 +219,9 @@ def run_match_bench(cfg: MatchBenchConfig, progress: Progress | None = None) -> 
                 key = {"rocks": size, "layout": layout, "sigma_m": sigma}
                 out["known"].append({**key, **_summary(ours, sigma)})
                 if size in cfg.astro_sizes and cfg.astro_queries > 0:
-                    out["astro"].append(_astro_row(key, cat, qs[: cfg.astro_queries], ours, mcfg, tick))
+                    out["astro"].append(
+                        _astro_row(key, cat, qs[: cfg.astro_queries], ours, mcfg, tick, cfg.astro_timeout_s)
+                    )
                 from scipy.spatial import cKDTree
 
                 otree = cKDTree(other.xy)
@@ -193,15 +235,48 @@ def run_match_bench(cfg: MatchBenchConfig, progress: Progress | None = None) -> 
                                        "false_match_pct": 100.0 * found / max(len(oq), 1)})
     for layout in cfg.layouts if cfg.detector_queries > 0 else ():
         out["detector"].append(_detector_row(cfg, layout, tick, out))
+    out["runner"] = [_runner_row(cfg, tick)] if cfg.runner_queries > 0 else []
     return out
 
 
-def _astro_row(key: dict, cat, qs: list[Query], ours: list[dict], mcfg, tick: Progress) -> dict:
+def _runner_row(cfg: MatchBenchConfig, tick: Progress) -> dict:
+    """Runner-like: 80-rock local maps in a drifted world frame, matched with a prior."""
+    from reloc import Catalog, ConstellationMatcher, MatcherConfig
+    from reloc.matcher import MatchPrior
+
+    rng = np.random.default_rng([cfg.seed, 11])
+    field = make_field(cfg.runner_size, "uniform", rng)
+    cat = Catalog(field.xy, field.size)
+    sig = cfg.runner_sigma_m
+    matcher = ConstellationMatcher(cat, MatcherConfig(sigma_m=sig, seed=cfg.seed))
+    qs = [runner_query(field, rng, sig, tree=cat.tree) for _ in range(cfg.runner_queries)]
+    step = tick("runner-like (~80 rocks, prior)", len(qs))
+    rows = []
+    for q in qs:
+        prior = MatchPrior(q.local_xy.mean(axis=0), cfg.runner_prior_radius_m)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        res = matcher.match(q.local_xy, q.local_size, prior)
+        dt, cpu = time.perf_counter() - t0, time.thread_time() - c0
+        row = {"found": res is not None, "time_s": dt, "cpu_s": cpu}
+        if res is not None:
+            e, h = _errors(res.rotation_rad, res.translation, res.scale, q)
+            row.update(pos_err_m=e, head_err_deg=h, n_inliers=res.n_inliers)
+        rows.append(row)
+        step()
+    return {"rocks": len(cat), "sigma_m": sig, "prior_radius_m": cfg.runner_prior_radius_m,
+            "local_rocks_mean": float(np.mean([q.local_xy.shape[0] for q in qs])), **_summary(rows, sig)}
+
+
+def _astro_row(key: dict, cat, qs: list[Query], ours: list[dict], mcfg, tick: Progress, timeout_s: float) -> dict:
     step = tick(f"astroalign {key}", len(qs))
     theirs = []
-    for q in qs:
-        theirs.append(_theirs(cat.xy, q, mcfg.inlier_radius_m))
-        step()
+    astro = _Astro(timeout_s)
+    try:
+        for q in qs:
+            theirs.append(astro(cat.xy, q, mcfg.inlier_radius_m))
+            step()
+    finally:
+        astro.close()
     a, b = _summary(ours[: len(qs)]), _summary(theirs)
     ratio = lambda x, y: x / y if y and not math.isnan(y) and not math.isnan(x) else math.nan
     return {
@@ -213,6 +288,7 @@ def _astro_row(key: dict, cat, qs: list[Query], ours: list[dict], mcfg, tick: Pr
         "ours_median_ms": a["median_ms"], "astroalign_median_ms": b["median_ms"],
         "time_ratio": ratio(a["median_ms"], b["median_ms"]),
         "astroalign_wrong_pct": b["wrong_pct"],
+        "astroalign_timeouts": sum(bool(r.get("timed_out")) for r in theirs), "astro_timeout_s": timeout_s,
     }
 
 
@@ -242,7 +318,7 @@ def _detector_row(cfg: MatchBenchConfig, layout: str, tick: Progress, out: dict)
            "local_rocks_mean": float(np.mean([q.local_xy.shape[0] for q in qs]))}
     if cfg.detector_size in cfg.astro_sizes and cfg.astro_queries > 0:
         out["astro"].append(_astro_row({"rocks": len(cat), "layout": f"{layout} detector", "sigma_m": sig},
-                                       cat, qs[: cfg.astro_queries], ours, mcfg, tick))
+                                       cat, qs[: cfg.astro_queries], ours, mcfg, tick, cfg.astro_timeout_s))
     return {**key, **_summary(ours, math.hypot(sig, sig))}
 
 
@@ -276,12 +352,20 @@ def result_tables(res: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     tables.append(("Side by side with astroalign (same queries, same inlier tolerance)",
                    ["rocks", "layout", "sigma m", "queries", "ours success %", "astroalign success %", "ratio",
                     "ours median err m", "astroalign median err m", "ratio", "ours median ms", "astroalign median ms",
-                    "ratio", "astroalign wrong %"],
+                    "ratio", "astroalign wrong %", "astroalign timeouts"],
                    [[str(r["rocks"]), r["layout"], f(r["sigma_m"], 2), str(r["queries"]), f(r["ours_success_pct"]),
                      f(r["astroalign_success_pct"]), f(r["success_ratio"], 2), f(r["ours_median_err_m"], 3),
                      f(r["astroalign_median_err_m"], 3), f(r["err_ratio"], 2), f(r["ours_median_ms"]),
-                     f(r["astroalign_median_ms"]), f(r["time_ratio"], 3), f(r["astroalign_wrong_pct"])]
+                     f(r["astroalign_median_ms"]), f(r["time_ratio"], 3), f(r["astroalign_wrong_pct"]),
+                     f"{r.get('astroalign_timeouts', 0)} (> {r.get('astro_timeout_s', math.nan):.0f} s)"]
                     for r in res["astro"]]))
+    tables.append(("Runner-like (80-rock local maps in a drifted world frame, matched with a prior)",
+                   ["catalog rocks", "sigma m", "prior radius m", "local rocks", "queries", "success %",
+                    "no answer %", "wrong %", "median err m", "err ratio", "median ms", "p99 ms", "median wall ms"],
+                   [[str(r["rocks"]), f(r["sigma_m"], 2), f(r["prior_radius_m"]), f(r["local_rocks_mean"]),
+                     str(r["queries"]), f(r["success_pct"]), f(r["no_answer_pct"]), f(r["wrong_pct"]),
+                     f(r["median_err_m"], 3), f(r.get("accuracy_ratio"), 2), f(r["median_ms"]), f(r["p99_ms"]),
+                     f(r["median_wall_ms"])] for r in res.get("runner", [])]))
     return tables
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Field", "Query", "detector_catalog", "detector_query", "make_field", "make_query"]
+__all__ = ["Field", "Query", "detector_catalog", "detector_query", "make_field", "make_query", "runner_query"]
 
 DENSITY_PER_M2 = 0.3
 MEDIAN_SIZE_M = 0.3
@@ -159,3 +159,29 @@ def detector_query(
     perm = rng.permutation(world.shape[0])
     theta, t = _random_rigid(rng, center)
     return Query(_to_local(world[perm], theta, t), size[perm], theta, t, center)
+
+
+def runner_query(
+    field: Field,
+    rng: np.random.Generator,
+    sigma_m: float,
+    *,
+    n_local: int = 100,
+    drift_m: float = 1.5,
+    drift_yaw_rad: float = 0.05,
+    tree=None,
+) -> Query:
+    """A local map as the runner matches it: the ``n_local`` rocks of a disc, 30 % dropped,
+    10 % spurious added (about 80 rocks for 100), jittered by ``sigma_m``, in the rover's estimated world frame, which is off from the true
+    one by a small drift (``drift_m`` per axis, ``drift_yaw_rad`` standard deviations)."""
+    q = make_query(field, rng, sigma_m, n_local=n_local, tree=tree)
+    # back to world coordinates, then into a drifted estimate of the world frame
+    c, s = np.cos(q.theta_rad), np.sin(q.theta_rad)
+    world = q.local_xy @ np.array([[c, s], [-s, c]]) + q.t
+    theta = float(rng.normal(0.0, drift_yaw_rad))
+    t = rng.normal(0.0, drift_m, 2) + (world.mean(axis=0) - _rot(theta) @ world.mean(axis=0))
+    return Query(_to_local(world, theta, t), q.local_size, theta, t, q.center_world)
+
+
+def _rot(theta: float) -> np.ndarray:
+    return np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])

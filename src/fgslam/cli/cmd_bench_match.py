@@ -28,6 +28,8 @@ def bench_match_cmd(
     detector_queries: int | None = typer.Option(None, "--detector-queries", help="Queries per layout with detector qualities."),
     astro_queries: int | None = typer.Option(None, "--astro-queries", help="Queries also given to astroalign (0: skip)."),
     astro_sizes: str | None = typer.Option(None, "--astro-sizes", help="Catalog sizes compared with astroalign."),
+    astro_timeout: float | None = typer.Option(None, "--astro-timeout", help="Seconds before an astroalign try counts as no answer."),
+    runner_queries: int | None = typer.Option(None, "--runner-queries", help="Runner-like queries (80 rocks, prior; 0: skip)."),
     build_size: int | None = typer.Option(None, "--build-size", help="Rocks of the index-build measurement."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random draw."),
     out: Path | None = typer.Option(None, "--out", help="Directory for results.json and table.md."),
@@ -53,6 +55,7 @@ def bench_match_cmd(
         "sigmas_m": _floats(sigmas), "queries": queries, "outside_queries": outside_queries,
         "detector_queries": detector_queries, "astro_queries": astro_queries,
         "astro_sizes": _ints(astro_sizes), "build_size": build_size,
+        "astro_timeout_s": astro_timeout, "runner_queries": runner_queries,
     }
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     err = Console(stderr=True)
