@@ -61,6 +61,11 @@ class RelocalizerConfig:
     correlation_window_s: float = 60.0
     prior_sigmas: float | None = 6.0
     prior_min_radius_m: float = 3.0
+    # With a prior, match against the catalog rocks that can hold the map (within prior radius +
+    # the map's extent + crop_margin_m of where the estimate puts it): a small index built per
+    # attempt (a few ms) instead of hypotheses over the whole catalog. False: whole catalog.
+    crop_catalog: bool = True
+    crop_margin_m: float = 2.0
     matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
 
     def __post_init__(self) -> None:
@@ -171,8 +176,13 @@ class Relocalizer:
             t0 = time.perf_counter()
             matcher = ConstellationMatcher(Catalog(catalog.xy_m, catalog.size_m), mcfg)
             self.build_time_s = time.perf_counter() - t0
+            self._mcfg = mcfg
         else:
             self.build_time_s = 0.0
+            self._mcfg = None  # a given matcher is used as it is (no crops)
+        from scipy.spatial import cKDTree
+
+        self._tree = cKDTree(np.asarray(catalog.xy_m, float).reshape(-1, 2))
         self.matcher = matcher
         self._fix_times: list[float] = []
 
@@ -191,15 +201,22 @@ class Relocalizer:
 
             sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
             prior = MatchPrior(local_xy.mean(axis=0), cfg.prior_min_radius_m + cfg.prior_sigmas * sigma_pos)
-        result = self.matcher.match(local_xy, lmap.size_m[idx], prior) if prior is not None else \
-            self.matcher.match(local_xy, lmap.size_m[idx])
+        rows = None  # catalog rows of the matcher's catalog (None: the whole catalog)
+        if prior is None:
+            result = self.matcher.match(local_xy, lmap.size_m[idx])
+        elif cfg.crop_catalog and self._mcfg is not None:
+            result, rows = self._match_cropped(local_xy, lmap.size_m[idx], prior)
+        else:
+            result = self.matcher.match(local_xy, lmap.size_m[idx], prior)
         dt = time.perf_counter() - t0
         if result is None:
             return FixAttempt(est.t, int(idx.size), "no match", dt, est_xyyaw=est_xyyaw)
         if abs(float(result.scale) - 1.0) > cfg.max_scale_error:
             log.info("t=%.1f s: match rejected, scale %.3f", est.t, result.scale)
             return FixAttempt(est.t, int(idx.size), "bad scale", dt, est_xyyaw=est_xyyaw)
-        pairs = np.asarray(result.inlier_pairs, dtype=int).reshape(-1, 2)
+        pairs = np.asarray(result.inlier_pairs, dtype=int).reshape(-1, 2).copy()
+        if rows is not None:
+            pairs[:, 1] = rows[pairs[:, 1]]
         L = local_xy[pairs[:, 0]]
         W = self.catalog.xy_m[pairs[:, 1]]
         latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
@@ -216,6 +233,26 @@ class Relocalizer:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
         self._fix_times.append(est.t)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw)
+
+    def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
+        """Match against the catalog rocks that can hold the map under ``prior``; returns the
+        result (catalog indices local to the crop) and the crop's rows in the full catalog."""
+        from reloc.catalog import Catalog
+        from reloc.errors import RelocError
+        from reloc.matcher import ConstellationMatcher
+
+        extent = float(np.max(np.linalg.norm(local_xy - local_xy.mean(axis=0), axis=1)))
+        radius = prior.radius_m + extent + self.config.crop_margin_m
+        rows = np.asarray(self._tree.query_ball_point(np.asarray(prior.center_xy, float), radius), dtype=int)
+        rows.sort()
+        if rows.size < 3:
+            return None, rows
+        try:
+            sub = ConstellationMatcher(Catalog(self.catalog.xy_m[rows], self.catalog.size_m[rows]), self._mcfg)
+        except RelocError as exc:  # a degenerate crop (duplicates, collinear): nothing to match
+            log.debug("catalog crop of %d rocks not usable: %s", rows.size, exc)
+            return None, rows
+        return sub.match(local_xy, local_size, prior), rows
 
     def _correlation_scale(self, t: float) -> float:
         """1 + number of fixes produced within ``correlation_window_s`` before ``t``."""

@@ -163,3 +163,19 @@ def test_similarity_covariance_is_propagated_to_the_fix():
     J = np.column_stack([(f(p0 + h) - f(p0 - h)) / 2e-6 for h in np.eye(4) * 1e-6])
     assert np.allclose(fix.cov_xyyaw, J @ C4 @ J.T, rtol=1e-5, atol=1e-12)
     assert np.allclose(fix.xyyaw, f(p0))
+
+
+def test_cropped_catalog_gives_the_whole_catalog_fix(stream):
+    """With a prior, matching against the catalog crop that can hold the map finds the same fix,
+    and its matched pairs index the full catalog."""
+    be = make_backend("dr", stream.initial)
+    run_backend(be, stream.measurements[: len(stream.measurements) // 2])
+    lmap, est = be.landmark_map(), be.estimate()
+    out = {}
+    for crop in (True, False):
+        reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5, crop_catalog=crop))
+        out[crop] = reloc.attempt(lmap, est)
+    assert out[True].status == out[False].status == "fix"
+    assert np.allclose(out[True].fix.xyyaw, out[False].fix.xyyaw, atol=0.05)
+    cat = {tuple(p) for p in np.round(stream.catalog.xy_m, 9)}
+    assert all(tuple(p) in cat for p in np.round(out[True].world_xy, 9))
