@@ -104,15 +104,21 @@ def make_query(
     dist, idx = tree.query(center, k=min(n_local, field.xy.shape[0]))
     radius = float(np.max(dist))
     keep = idx[rng.random(idx.size) >= drop]
-    n_sp = round(spurious * n_local)
-    ang = rng.uniform(0.0, 2 * np.pi, n_sp)
-    rr = radius * np.sqrt(rng.random(n_sp))
-    sp_xy = center + np.stack([rr * np.cos(ang), rr * np.sin(ang)], axis=1)
-    world = np.vstack([field.xy[keep] + rng.normal(0.0, sigma_m, (keep.size, 2)), sp_xy])
-    size = np.concatenate([field.size[keep] * np.exp(rng.normal(0.0, size_jitter, keep.size)), _sizes(rng, n_sp)])
+    return _observed(rng, center, radius, field.xy[keep], field.size[keep], round(spurious * n_local), sigma_m, size_jitter)
+
+
+def _observed(rng: np.random.Generator, center: np.ndarray, radius: float, xy: np.ndarray, size: np.ndarray,
+              n_fake: int, sigma_m: float, size_jitter: float) -> Query:
+    """A local map of the rocks ``xy`` (K, 2), ``size`` (K,) seen with noise, plus ``n_fake`` false
+    rocks in the disc (``center``, ``radius``), shuffled and moved by a random rigid transform."""
+    ang = rng.uniform(0.0, 2 * np.pi, n_fake)
+    rr = radius * np.sqrt(rng.random(n_fake))
+    fake_xy = center + np.stack([rr * np.cos(ang), rr * np.sin(ang)], axis=1)
+    world = np.vstack([xy + rng.normal(0.0, sigma_m, (xy.shape[0], 2)), fake_xy])
+    sizes = np.concatenate([size * np.exp(rng.normal(0.0, size_jitter, size.shape[0])), _sizes(rng, n_fake)])
     perm = rng.permutation(world.shape[0])
     theta, t = _random_rigid(rng, center)
-    return Query(_to_local(world[perm], theta, t), size[perm], theta, t, center)
+    return Query(_to_local(world[perm], theta, t), sizes[perm], theta, t, center)
 
 
 def detector_catalog(
@@ -151,14 +157,7 @@ def detector_query(
     radius = float(np.max(dist))
     hit = idx[rng.random(idx.size) < recall]
     n_fp = round(hit.size * (1.0 - precision) / precision)
-    ang = rng.uniform(0.0, 2 * np.pi, n_fp)
-    rr = radius * np.sqrt(rng.random(n_fp))
-    fp_xy = center + np.stack([rr * np.cos(ang), rr * np.sin(ang)], axis=1)
-    world = np.vstack([truth.xy[hit] + rng.normal(0.0, sigma_m, (hit.size, 2)), fp_xy])
-    size = np.concatenate([truth.size[hit] * np.exp(rng.normal(0.0, size_jitter, hit.size)), _sizes(rng, n_fp)])
-    perm = rng.permutation(world.shape[0])
-    theta, t = _random_rigid(rng, center)
-    return Query(_to_local(world[perm], theta, t), size[perm], theta, t, center)
+    return _observed(rng, center, radius, truth.xy[hit], truth.size[hit], n_fp, sigma_m, size_jitter)
 
 
 def runner_query(
