@@ -229,7 +229,7 @@ def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, r
     seen = biased_points(pts, radius, frac, bias) if len(pts) else pts
     sigma_surface = cfg.surface_bias_frac * radius
     cov_c = _stereo_cov_cam(seen, cam, cfg, sigma_surface) if len(pts) else np.zeros((0, 3, 3))
-    white = _stereo_cov_cam(seen, cam, cfg) if len(pts) else cov_c
+    white = _stereo_cov_cam(seen, cam, cfg) if len(pts) and cfg.surface_bias_frac > 0 else cov_c
     L = np.linalg.cholesky(white) if len(pts) else white
     meas_c = seen + np.einsum("mij,mj->mi", L, rng.standard_normal(pts.shape)) if len(pts) else pts
     Rbc, tbc = cam.T_base_cam[:3, :3], cam.T_base_cam[:3, 3]

@@ -180,9 +180,6 @@ class Relocalizer:
         else:
             self.build_time_s = 0.0
             self._mcfg = None  # a given matcher is used as it is (no crops)
-        from scipy.spatial import cKDTree
-
-        self._tree = cKDTree(np.asarray(catalog.xy_m, float).reshape(-1, 2))
         self.matcher = matcher
         self._fix_times: list[float] = []
 
@@ -243,7 +240,7 @@ class Relocalizer:
 
         extent = float(np.max(np.linalg.norm(local_xy - local_xy.mean(axis=0), axis=1)))
         radius = prior.radius_m + extent + self.config.crop_margin_m
-        rows = np.asarray(self._tree.query_ball_point(np.asarray(prior.center_xy, float), radius), dtype=int)
+        rows = np.asarray(self.matcher.catalog.tree.query_ball_point(np.asarray(prior.center_xy, float), radius), dtype=int)
         rows.sort()
         if rows.size < 3:
             return None, rows
