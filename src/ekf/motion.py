@@ -41,7 +41,9 @@ def process_noise_body(
     s_lat = cfg.lat_floor + cfg.lat_per_speed * speed + cfg.lat_per_turn * turn + extra
     s_vert = cfg.vert_floor + cfg.vert_per_speed * speed + extra
     s_rot = cfg.rot_floor + cfg.rot_per_turn * turn + cfg.rot_per_rough * rough
-    var_t = np.array([s_fwd, s_lat, s_vert]) ** 2 * step.dt
+    dist = speed * step.dt
+    var_t = np.array([s_fwd, s_lat, s_vert]) ** 2 * step.dt + dist * np.array(
+        [cfg.fwd_per_sqrtm**2, cfg.lat_per_sqrtm**2, cfg.lat_per_sqrtm**2])
     var_r = np.full(3, s_rot**2 * step.dt)
     return var_t, var_r
 

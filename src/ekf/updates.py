@@ -80,10 +80,21 @@ def sym_rank2_update(P: np.ndarray, A: np.ndarray, B: np.ndarray, block: int = 1
     for i0 in range(0, n, block):
         i1 = min(i0 + block, n)
         D = P[i0:i1, i0:i1]
-        D[...] = np.tril(D) + np.tril(D, -1).T
+        np.copyto(D, D.T, where=_strict_upper(i1 - i0))  # diagonal block: lower -> upper
         if i1 < n:
             P[i0:i1, i1:] = P[i1:, i0:i1].T
     return P
+
+
+_UPPER: dict[int, np.ndarray] = {}
+
+
+def _strict_upper(b: int) -> np.ndarray:
+    """(b, b) bool mask of the strict upper triangle (cached: the mirror runs per update)."""
+    m = _UPPER.get(b)
+    if m is None:
+        m = _UPPER[b] = ~np.tri(b, dtype=bool)
+    return m
 
 
 def fix_model(p_world: np.ndarray, R_world_base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -42,8 +42,11 @@ class RelocalizerConfig:
     period_s: float = 3.0  # one attempt per period of stream time (goal: fixes >= 0.2 Hz)
     min_obs: int = 2  # landmarks seen fewer times are not matched (likely false positives)
     min_landmarks: int = 8  # skip the attempt below this many usable landmarks
-    max_landmarks: int = 80  # the nearest landmarks to the rover form the local constellation
-    max_radius_m: float = 20.0  # ... within this distance of the rover
+    max_landmarks: int = 160  # this many landmarks form the local constellation ...
+    max_radius_m: float = 30.0  # ... chosen within this distance of the rover ...
+    # ... "largest" first (the orbital catalog holds mostly the larger rocks: on a dense yard the
+    # nearest 80 are small rocks in a few metres, few of them catalogued) or "nearest" first
+    select: str = "largest"
     latency: str = "fixed"  # "fixed": t_recv = t_meas + delay_s; "measured": + matching wall time
     delay_s: float = 2.0
     latency_scale: float = 1.0  # multiplies the measured matching time (slower onboard CPU)
@@ -55,9 +58,12 @@ class RelocalizerConfig:
     # Search prior: the map's centroid must land within prior_min_radius_m + prior_sigmas *
     # sigma_pos (largest std of the estimate's x/y) of where the estimate puts it; None: no prior.
     # Successive fixes share most inlier rocks, hence most of their catalog error: fusing them as
-    # independent would make a back-end overconfident. Each fix's covariance is multiplied by
-    # 1 + (fixes produced in the preceding window), so the fixes of a window together carry about
-    # the information of one (the covariance-intersection bound). 0 disables.
+    # independent would make a back-end overconfident. correlation "rocks" (default): each fix's
+    # covariance is multiplied by 1 + the mean, over its inlier catalog rocks, of how many earlier
+    # fixes used that rock (sum over earlier fixes of the fraction of rocks shared with them; for
+    # fixes on the same rocks the covariance-intersection bound, whenever they were made).
+    # "window": 1 + number of fixes produced in the preceding correlation_window_s. "none": 1.
+    correlation: str = "rocks"
     correlation_window_s: float = 60.0
     prior_sigmas: float | None = 6.0
     prior_min_radius_m: float = 3.0
@@ -66,6 +72,12 @@ class RelocalizerConfig:
     # attempt (a few ms) instead of hypotheses over the whole catalog. False: whole catalog.
     crop_catalog: bool = True
     crop_margin_m: float = 2.0
+    # Crops are cut on a grid: centre snapped to crop_snap_m, radius rounded up to a multiple of
+    # it (plus the snapping error), so successive attempts a few decimetres apart share one crop
+    # and its index, kept in a cache of crop_cache crops. The crop still holds every rock that
+    # can hold the map.
+    crop_snap_m: float = 2.0
+    crop_cache: int = 8
     matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
 
     def __post_init__(self) -> None:
@@ -75,6 +87,13 @@ class RelocalizerConfig:
             raise RelocalizerError(f"relocalizer latency must be 'fixed' or 'measured', got {self.latency!r}")
         if self.delay_s < 0:
             raise RelocalizerError(f"relocalizer delay_s must be >= 0, got {self.delay_s}")
+        if self.select not in ("largest", "nearest"):
+            raise RelocalizerError(f"relocalizer select must be 'largest' or 'nearest', got {self.select!r}")
+        if self.correlation not in ("rocks", "window", "none"):
+            raise RelocalizerError(f"relocalizer correlation must be 'rocks', 'window' or 'none', got {self.correlation!r}")
+        if not self.crop_snap_m > 0 or self.crop_cache < 1:
+            raise RelocalizerError(
+                f"relocalizer crop_snap_m must be > 0 and crop_cache >= 1, got {self.crop_snap_m}, {self.crop_cache}")
 
 
 @dataclass(frozen=True)
@@ -94,13 +113,18 @@ class FixAttempt:
 
 
 def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig) -> np.ndarray:
-    """Indices of the landmarks used for matching: n_obs >= min_obs, nearest ``max_landmarks`` within ``max_radius_m``."""
+    """Indices of the landmarks used for matching: n_obs >= min_obs within ``max_radius_m`` of the
+    rover, at most ``max_landmarks`` of them, the largest (or the nearest, ``cfg.select``) first."""
     if len(lmap) == 0:
         return np.zeros(0, dtype=int)
     ok = np.flatnonzero(lmap.n_obs >= cfg.min_obs)
     d = np.linalg.norm(lmap.xyz_world_m[ok, :2] - np.asarray(xy_rover)[:2], axis=1)
     ok, d = ok[d <= cfg.max_radius_m], d[d <= cfg.max_radius_m]
-    return ok[np.argsort(d, kind="stable")[: cfg.max_landmarks]]
+    if cfg.select == "largest":
+        order = np.lexsort((d, -lmap.size_m[ok]))  # larger first, nearer among equals
+    else:
+        order = np.argsort(d, kind="stable")
+    return np.sort(ok[order[: cfg.max_landmarks]])
 
 
 def fix_from_similarity(
@@ -182,6 +206,9 @@ class Relocalizer:
             self._mcfg = None  # a given matcher is used as it is (no crops)
         self.matcher = matcher
         self._fix_times: list[float] = []
+        self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
+        self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
+        self.n_crops_built = 0
 
     def attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:
         """Try to relocalize the map snapshot taken with pose ``est`` (its ``t`` is ``t_meas``)."""
@@ -224,36 +251,62 @@ class Relocalizer:
                 est, float(result.rotation_rad), np.asarray(result.translation), float(result.scale),
                 L, float(result.rmse_m), cfg, t_recv=est.t + latency, map_var_m2=map_var,
                 similarity_cov=getattr(result, "similarity_cov", None),
-                cov_scale=self._correlation_scale(est.t),
+                cov_scale=self._correlation_scale(est.t, pairs[:, 1]),
             )
         except RelocalizerError as exc:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
         self._fix_times.append(est.t)
+        np.add.at(self._rock_uses, np.unique(pairs[:, 1]), 1)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw)
 
     def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
         """Match against the catalog rocks that can hold the map under ``prior``; returns the
         result (catalog indices local to the crop) and the crop's rows in the full catalog."""
-        from reloc.catalog import Catalog
-        from reloc.errors import RelocError
-        from reloc.matcher import ConstellationMatcher
-
-        extent = float(np.max(np.linalg.norm(local_xy - local_xy.mean(axis=0), axis=1)))
-        radius = prior.radius_m + extent + self.config.crop_margin_m
-        rows = np.asarray(self.matcher.catalog.tree.query_ball_point(np.asarray(prior.center_xy, float), radius), dtype=int)
-        rows.sort()
-        if rows.size < 3:
-            return None, rows
-        try:
-            sub = ConstellationMatcher(Catalog(self.catalog.xy_m[rows], self.catalog.size_m[rows]), self._mcfg)
-        except RelocError as exc:  # a degenerate crop (duplicates, collinear): nothing to match
-            log.debug("catalog crop of %d rocks not usable: %s", rows.size, exc)
+        rows, sub = self._crop(prior.center_xy, prior.radius_m + self._extent(local_xy) + self.config.crop_margin_m)
+        if sub is None:
             return None, rows
         return sub.match(local_xy, local_size, prior), rows
 
-    def _correlation_scale(self, t: float) -> float:
-        """1 + number of fixes produced within ``correlation_window_s`` before ``t``."""
-        w = self.config.correlation_window_s
-        if w <= 0:
-            return 1.0
-        return 1.0 + sum(1 for tf in self._fix_times if t - w <= tf < t)
+    @staticmethod
+    def _extent(local_xy: np.ndarray) -> float:
+        return float(np.max(np.linalg.norm(local_xy - local_xy.mean(axis=0), axis=1)))
+
+    def _crop(self, center_xy, radius_m: float):
+        """Rows (sorted) and matcher of the grid crop that covers the disc (``center_xy``, ``radius_m``);
+        the matcher is None when the crop cannot be indexed (too few rocks, degenerate)."""
+        from reloc.catalog import Catalog, CatalogConfig
+        from reloc.errors import RelocError
+        from reloc.matcher import ConstellationMatcher
+
+        snap = self.config.crop_snap_m
+        key = (*np.round(np.asarray(center_xy, float) / snap).astype(int).tolist(), int(np.ceil(radius_m / snap)))
+        hit = self._crops.pop(key, None)
+        if hit is None:
+            center = np.array(key[:2], float) * snap
+            # the snapped centre is at most snap/sqrt(2) from the asked one
+            radius = key[2] * snap + snap / np.sqrt(2.0)
+            rows = np.sort(np.asarray(self.matcher.catalog.tree.query_ball_point(center, radius), dtype=int))
+            sub = None
+            if rows.size >= 3:
+                try:  # a small index: one thread (spawning workers costs more than the queries)
+                    cat = Catalog(self.catalog.xy_m[rows], self.catalog.size_m[rows], CatalogConfig(workers=1))
+                    sub = ConstellationMatcher(cat, self._mcfg)
+                except RelocError as exc:  # a degenerate crop (duplicates, collinear): nothing to match
+                    log.debug("catalog crop of %d rocks not usable: %s", rows.size, exc)
+            hit = (rows, sub)
+            self.n_crops_built += 1
+        self._crops[key] = hit  # most recently used last
+        while len(self._crops) > self.config.crop_cache:
+            self._crops.pop(next(iter(self._crops)))
+        return hit
+
+    def _correlation_scale(self, t: float, catalog_rows: np.ndarray) -> float:
+        """Covariance multiplier of a fix at ``t`` whose inliers are catalog rocks ``catalog_rows``
+        (see ``RelocalizerConfig.correlation``)."""
+        cfg = self.config
+        if cfg.correlation == "rocks":
+            return 1.0 + float(np.mean(self._rock_uses[np.unique(catalog_rows)]))
+        if cfg.correlation == "window" and cfg.correlation_window_s > 0:
+            w = cfg.correlation_window_s
+            return 1.0 + sum(1 for tf in self._fix_times if t - w <= tf < t)
+        return 1.0

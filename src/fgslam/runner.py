@@ -23,6 +23,7 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ekf.blas import blas_limit
 from fgslam.errors import FgslamError
 from fgslam.relocalizer import FixAttempt, Relocalizer
 from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, Trajectory
@@ -50,6 +51,17 @@ class RunnerConfig:
     record_rate_hz: float = 10.0
     speed_source: str = "cmd"  # "cmd" or "wheel" (see OdometryAssembler)
     max_imu_gap_s: float = 1.0
+    # BLAS threads during the pass (0: library default). The back-ends and the matcher do small
+    # dense algebra (<= ~1000 x 1000) one call at a time: a threaded BLAS makes it slower, and a
+    # comparison already runs one pass per core (measured on my2020, iSAM2 over 150 s of stream:
+    # 16.0 s of back-end time with OpenBLAS's default threads, 8.2 s with one).
+    blas_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if not self.record_rate_hz > 0:
+            raise RunnerError(f"runner record_rate_hz must be > 0, got {self.record_rate_hz}")
+        if self.blas_threads < 0:
+            raise RunnerError(f"runner blas_threads must be >= 0, got {self.blas_threads}")
 
 
 @dataclass
@@ -127,9 +139,14 @@ def run_backend(
     produced), or none of them (no relocalization). ``fix_sink`` is told of every online fix and,
     about once per stream second, of how far the stream has got: no fix produced later can have
     ``t_recv`` before that time, which is what lets a :class:`FixFeed` consumer run alongside."""
+    cfg = config or RunnerConfig()
+    with blas_limit(cfg.blas_threads):
+        return _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg, on_progress)
+
+
+def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: RunnerConfig, on_progress) -> RunResult:
     if sum(x is not None for x in (relocalizer, fixes, fix_feed)) > 1:
         raise RunnerError("give one of a relocalizer (online fixes), a fix list or a fix feed (replay), not several")
-    cfg = config or RunnerConfig()
     assembler = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s)
     pending: list[tuple[float, int, GlobalFix]] = []
     for k, f in enumerate(fixes or ()):

@@ -14,10 +14,12 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
@@ -25,6 +27,12 @@ from reloc.errors import MeasurementError
 
 _NO_MATCH = 1e12
 _REINVERT_EVERY = 8  # joint compatibility: fresh inverse after this many downdates (round-off)
+
+
+@functools.lru_cache(maxsize=4096)
+def _chi2_limit(confidence: float, dof: int) -> float:
+    """chi2 quantile (scipy's ppf costs ~0.5 ms; a frame asks for a handful of dof values)."""
+    return float(chi2.ppf(confidence, dof))
 
 
 @dataclass(frozen=True)
@@ -165,13 +173,20 @@ def _joint_compatible(det, cand, d2, z_base, zhat_base, R_z, S_hat, config, join
         S = np.zeros((3 * k, 3 * k))
         for i in range(k):
             S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = S_hat[cand[i]] + R_z[det[i]]
-    Y = None
+    S = 0.5 * (S + S.T)
+    try:  # most frames pass as they are: one Cholesky solve, no inverse
+        c = cho_factor(S, lower=True, check_finite=False)
+        if float(nu @ cho_solve(c, nu, check_finite=False)) <= _chi2_limit(config.joint_confidence, 3 * det.size):
+            return det, cand, 0
+        Y = cho_solve(c, np.eye(S.shape[0]), check_finite=False)
+    except LinAlgError:  # not positive definite (round-off): the general inverse below
+        Y = None
     while det.size:
         k = det.size
-        if Y is None or n_dropped % _REINVERT_EVERY == 0:
+        if Y is None or (n_dropped and n_dropped % _REINVERT_EVERY == 0):
             Y = np.linalg.inv(0.5 * (S + S.T))
         y = Y @ nu
-        if float(nu @ y) <= chi2.ppf(config.joint_confidence, 3 * k):
+        if float(nu @ y) <= _chi2_limit(config.joint_confidence, 3 * k):
             break
         if k == 1:
             return det[:0], cand[:0], n_dropped + 1

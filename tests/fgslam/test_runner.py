@@ -131,19 +131,75 @@ def test_dead_reckoning_config_overrides_are_checked(stream):
     assert make_backend("dr", stream.initial, {"use_fixes": True}).config == DeadReckoningConfig(use_fixes=True)
 
 
-def test_successive_fixes_are_deweighted_for_their_shared_error(stream):
-    reloc = Relocalizer(stream.catalog, RelocalizerConfig(correlation_window_s=60.0, min_landmarks=5),
-                        matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+def _map_and_pose(stream):
     be = make_backend("dr", stream.initial)
-    res = run_backend(be, stream.measurements[: len(stream.measurements) // 2])
-    lmap, est = be.landmark_map(), be.estimate()
+    run_backend(be, stream.measurements[: len(stream.measurements) // 2])
+    return be.landmark_map(), be.estimate()
+
+
+def test_successive_fixes_are_deweighted_for_their_shared_error(stream):
+    lmap, est = _map_and_pose(stream)
+    cfg = RelocalizerConfig(correlation="window", correlation_window_s=60.0, min_landmarks=5)
+    reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     a1 = reloc.attempt(lmap, est)
     a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
     a3 = reloc.attempt(lmap, PoseEstimate(est.t + 100.0, est.T_world_base, est.cov))
     assert a1.fix is not None and a2.fix is not None and a3.fix is not None
     assert np.allclose(a2.fix.cov_xyyaw, 2.0 * a1.fix.cov_xyyaw)  # one fix in the window before
     assert np.allclose(a3.fix.cov_xyyaw, a1.fix.cov_xyyaw)  # the window has passed
-    del res
+
+
+def test_fixes_on_shared_catalog_rocks_are_deweighted_whenever_they_were_made(stream):
+    """correlation "rocks": the covariance grows with the earlier fixes' use of the same catalog
+    rocks, however long ago; a fix on other rocks keeps its own covariance."""
+    lmap, est = _map_and_pose(stream)
+    reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5),
+                        matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+    assert reloc.config.correlation == "rocks"
+    a1 = reloc.attempt(lmap, est)
+    a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
+    a3 = reloc.attempt(lmap, PoseEstimate(est.t + 500.0, est.T_world_base, est.cov))
+    assert a1.status == a2.status == a3.status == "fix"
+    assert np.allclose(a2.fix.cov_xyyaw, 2.0 * a1.fix.cov_xyyaw)  # every rock used once before
+    assert np.allclose(a3.fix.cov_xyyaw, 3.0 * a1.fix.cov_xyyaw)  # ... and twice, 500 s later
+    # half of the rocks used three times before, half new: 1 + mean use
+    rows = np.flatnonzero(reloc._rock_uses)  # the catalog rocks of those fixes
+    fresh = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5),
+                        matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+    fresh._rock_uses[rows[: rows.size // 2]] = 3
+    assert fresh._correlation_scale(0.0, rows) == pytest.approx(1.0 + 3.0 * (rows.size // 2) / rows.size)
+    with pytest.raises(RelocalizerError, match="correlation"):
+        RelocalizerConfig(correlation="time")
+
+
+def test_nearby_attempts_share_one_catalog_crop_and_its_fix(stream):
+    """Crops are cut on a grid: attempts a few decimetres apart reuse one crop (and its index),
+    and the cached crop gives the fix a fresh relocalizer gives."""
+    lmap, est = _map_and_pose(stream)
+    cfg = RelocalizerConfig(min_landmarks=5, correlation="none")
+    reloc = Relocalizer(stream.catalog, cfg)
+    first = reloc.attempt(lmap, est)
+    T = est.T_world_base.copy()
+    T[:2, 3] += 0.05  # the rover has moved a little; its map has not
+    again = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, T, est.cov))
+    assert first.status == again.status == "fix"
+    assert reloc.n_crops_built == 1
+    fresh = Relocalizer(stream.catalog, cfg).attempt(lmap, PoseEstimate(est.t + 3.0, T, est.cov))
+    assert np.allclose(fresh.fix.xyyaw, again.fix.xyyaw) and np.allclose(fresh.fix.cov_xyyaw, again.fix.cov_xyyaw)
+    with pytest.raises(RelocalizerError, match="crop_snap_m"):
+        RelocalizerConfig(crop_snap_m=0.0)
+
+
+def test_select_local_map_prefers_the_largest_rocks_within_the_radius():
+    xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [8, 0, 0], [50, 0, 0]], float)
+    size = np.array([0.1, 0.5, 0.1, 0.4, 1.0])
+    lm = LandmarkMap(np.arange(5), xyz, np.tile(np.eye(3), (5, 1, 1)), size, np.full(5, 3))
+    rover = np.array([0.0, 0.0])
+    assert list(select_local_map(lm, rover, RelocalizerConfig(max_landmarks=3, max_radius_m=20.0))) == [0, 1, 3]
+    near = RelocalizerConfig(max_landmarks=3, max_radius_m=20.0, select="nearest")
+    assert list(select_local_map(lm, rover, near)) == [0, 1, 2]
+    with pytest.raises(RelocalizerError, match="select"):
+        RelocalizerConfig(select="biggest")
 
 
 def test_similarity_covariance_is_propagated_to_the_fix():
@@ -179,3 +235,12 @@ def test_cropped_catalog_gives_the_whole_catalog_fix(stream):
     assert np.allclose(out[True].fix.xyyaw, out[False].fix.xyyaw, atol=0.05)
     cat = {tuple(p) for p in np.round(stream.catalog.xy_m, 9)}
     assert all(tuple(p) in cat for p in np.round(out[True].world_xy, 9))
+
+
+def test_runner_config_is_checked():
+    from fgslam.runner import RunnerConfig
+
+    with pytest.raises(RunnerError, match="blas_threads"):
+        RunnerConfig(blas_threads=-1)
+    with pytest.raises(RunnerError, match="record_rate_hz"):
+        RunnerConfig(record_rate_hz=0.0)

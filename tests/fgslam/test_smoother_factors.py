@@ -175,3 +175,25 @@ def test_accumulated_odometry_covariance_matches_monte_carlo(rng):
     C_emp = np.cov(np.array(samples).T)
     d = np.sqrt(np.diag(acc.cov))
     np.testing.assert_allclose(C_emp / np.outer(d, d), acc.cov / np.outer(d, d), atol=0.12)
+
+
+def test_batched_fix_residuals_equal_one_by_one(rng):
+    from fgslam.smoother.fixes import FixRecord, residual_d2, residual_d2_many
+    from reloc.measurements import GlobalFix
+
+    recs, T_kf = [], []
+    for i in range(7):
+        A = rng.normal(size=(3, 3))
+        fix = GlobalFix(t_meas=float(i), t_recv=i + 1.0, x_m=float(rng.normal()), y_m=float(rng.normal()),
+                        yaw_rad=float(rng.uniform(-3.1, 3.1)), cov_xyyaw=A @ A.T + 0.1 * np.eye(3))
+        T_rel = np.eye(4)
+        T_rel[:3, :3] = Rotation.from_rotvec(rng.normal(scale=0.2, size=3)).as_matrix()
+        T_rel[:3, 3] = rng.normal(size=3)
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+        T[:3, 3] = rng.normal(size=3)
+        recs.append(FixRecord(fix, i, X(i), T_rel, fix.cov_xyyaw + 0.05 * np.eye(3), i))
+        T_kf.append(T)
+    expected = [residual_d2(r, T) for r, T in zip(recs, T_kf)]
+    assert np.allclose(residual_d2_many(recs, np.array(T_kf)), expected, rtol=1e-12)
+    assert residual_d2_many([], np.zeros((0, 4, 4))).shape == (0,)

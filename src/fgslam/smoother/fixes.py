@@ -58,3 +58,16 @@ def residual_d2(rec: FixRecord, T_world_kf: np.ndarray) -> float:
     """Squared whitened residual of an applied fix at the current keyframe estimate."""
     r, _ = fix_residual(T_world_kf, rec.T_kf_meas, rec.fix.xyyaw)
     return float(r @ np.linalg.solve(rec.cov, r))
+
+
+def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarray:
+    """:func:`residual_d2` of every record at once; ``T_world_kf`` (n, 4, 4) their keyframe estimates."""
+    if not recs:
+        return np.zeros(0)
+    T = np.asarray(T_world_kf, float) @ np.array([r.T_kf_meas for r in recs])
+    target = np.array([r.fix.xyyaw for r in recs])
+    a = T[:, :3, 0]  # base_link x axis in the world: yaw is its heading on the xy plane
+    dyaw = np.arctan2(a[:, 1], a[:, 0]) - target[:, 2]
+    r = np.column_stack([T[:, 0, 3] - target[:, 0], T[:, 1, 3] - target[:, 1], np.arctan2(np.sin(dyaw), np.cos(dyaw))])
+    w = np.linalg.solve(np.array([rec.cov for rec in recs]), r[:, :, None])[:, :, 0]
+    return np.einsum("ij,ij->i", r, w)

@@ -28,7 +28,7 @@ from fgslam.smoother.factors import (
     make_point_factor,
     skew,
 )
-from fgslam.smoother.fixes import FixRecord, innovation_d2, place_fix, residual_d2
+from fgslam.smoother.fixes import FixRecord, innovation_d2, place_fix, residual_d2_many
 from fgslam.smoother.keyframes import KeyframeStore, keyframe_due
 from fgslam.smoother.landmarks import ACTIVE, LandmarkStore
 from fgslam.smoother.odometry_factors import OdometryAccumulator, between_factor, gravity_factor
@@ -105,10 +105,10 @@ class Isam2Smoother:
         self.n_predict += 1
         self.acc.push(step, self.cfg.odometry)
         if keyframe_due(self.acc, self.cfg.keyframes):
-            t0, c0 = time.perf_counter(), time.process_time()
+            t0, c0 = time.perf_counter(), time.thread_time()
             self._add_keyframe()
             self.update_latency_s.append(time.perf_counter() - t0)
-            self.update_cpu_s.append(time.process_time() - c0)
+            self.update_cpu_s.append(time.thread_time() - c0)
 
     def update_landmarks(self, obs: RockObservations) -> LandmarkUpdateReport:
         """Associate one rock frame; buffer factors on the current keyframe for the next update."""
@@ -150,12 +150,12 @@ class Isam2Smoother:
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         """Place a (late) planar fix on the keyframe before ``t_meas``; gate, update, retract."""
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self._solver_touched = False
         outcome = self._apply_fix(fix)
         if self._solver_touched:  # gate rejections cost microseconds and are not updates
             self.update_latency_s.append(time.perf_counter() - t0)
-            self.update_cpu_s.append(time.process_time() - c0)
+            self.update_cpu_s.append(time.thread_time() - c0)
         if outcome.accepted:
             self.n_fix_ok += 1
         else:
@@ -378,7 +378,7 @@ class Isam2Smoother:
             live = [r for r in self.fixes if r.active and self.solver.alive(r.key)]
             if not live:
                 return
-            d2 = [residual_d2(r, self.solver.pose(r.key)) for r in live]
+            d2 = residual_d2_many(live, np.array([self.solver.pose(r.key) for r in live]))
             worst = int(np.argmax(d2))
             if d2[worst] <= cfg.retract_chi2:
                 return
