@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.render.camera import PinholeCamera, checked_pose, pixel_grid, view_rays
+from sim.render.camera import PinholeCamera, checked_pose, pixel_grid, view_rays, world_dirs
 from sim.render.config import Lighting, RenderError
 from sim.render.shading import Shader, cos_to_sun, shaded_grey, to_uint8
 from sim.render.shadows import SunTest, right_from_left, sampled_sunlit
@@ -50,7 +50,7 @@ def render_views(scene: RaycastScene, shader: Shader, T_world_cam: np.ndarray, c
     T = np.asarray(T_world_cam, dtype=float)
     R = T[:3, :3].astype(np.float32)
     grid = pixel_grid(camera)
-    dirs = grid.dirs_cam @ R.T
+    dirs = world_dirs(camera, R)
     origins = [T[:3, 3].astype(np.float32)]
     if baseline_m is not None:
         origins.append(origins[0] + np.float32(baseline_m) * R[:, 0])
