@@ -44,8 +44,8 @@ def render_nadir_view(
     if not gsd_m > 0:
         raise RenderError(f"gsd_m must be > 0, got {gsd_m}")
     xmin, xmax, ymin, ymax = extent
-    W = int(round((xmax - xmin) / gsd_m))
-    H = int(round((ymax - ymin) / gsd_m))
+    W = round((xmax - xmin) / gsd_m)
+    H = round((ymax - ymin) / gsd_m)
     if W < 1 or H < 1:
         raise RenderError(f"extent {extent} is smaller than one {gsd_m} m pixel")
     xs = (xmin + (np.arange(W) + 0.5) * gsd_m).astype(np.float32)

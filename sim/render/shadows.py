@@ -13,12 +13,12 @@ right view of a rectified pair takes the left view's flag where it sees the same
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import lru_cache
-from typing import Callable
 
 import numpy as np
 
-from sim.world import RayHits, RaycastScene
+from sim.world import RaycastScene, RayHits
 
 SHADOW_OFFSET_M = 0.01  # shadow rays start this far off the surface, along its normal
 INV_DEPTH_TOL = 0.02  # relative: a sample pair whose mean inverse depth is off by more spans an edge

@@ -15,6 +15,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -197,11 +198,8 @@ def _render_timings(kind: str, samples: list, runs: int) -> dict:
     with _one_cv_thread():
         for s in samples:
             r = Renderer(s.world, nthreads=1)
-            if kind == "nadir":
-                render = lambda: r.nadir(s.nadir.gsd_m, extent=s.nadir.extent)  # noqa: E731
-            else:
-                sr = s.stereo
-                render = lambda: r.stereo(sr.T_world_left, sr.camera, sr.baseline_m)  # noqa: E731
+            render = (partial(r.nadir, s.nadir.gsd_m, extent=s.nadir.extent) if kind == "nadir"
+                      else partial(r.stereo, s.stereo.T_world_left, s.stereo.camera, s.stereo.baseline_m))
             render()  # builds the world's ray caster once
             per_view.append(_timed(render, runs))
         key = "render_tile" if kind == "nadir" else "render_stereo_pair"

@@ -85,6 +85,11 @@ def run_e2e(sim_cfg, out: Path, compare_cfg: CompareConfig | None = None, image_
     return res
 
 
+def runs(comparison: dict) -> dict:
+    """The variant metrics (by run key) of one source's comparison summary."""
+    return comparison["runs"]
+
+
 def table_rows(res: dict) -> tuple[list[str], list[list[str]]]:
     """(columns, rows): one row per quantity, one column per detection source."""
     sources = list(res["sources"])
@@ -102,7 +107,6 @@ def table_rows(res: dict) -> tuple[list[str], list[list[str]]]:
             cells.append(v if isinstance(v, str) else _f(v, fmt))
         rows.append([label, *cells])
 
-    runs = lambda c: c["runs"]  # noqa: E731
     ref = run_key(res["sources"][sources[0]]["comparison"].get("reference_backend", "isam2"), True)
     row("Traverse [m] / [s]", lambda d, c: f"{c['distance_m']:.1f} / {c['duration_s']:.0f}")
     row("Stereo frames", lambda d, c: d["n_stereo_frames"], "{:d}")
@@ -134,11 +138,12 @@ def table_rows(res: dict) -> tuple[list[str], list[list[str]]]:
 def markdown(res: dict) -> str:
     """The side-by-side table as Markdown, with what the detection figures count."""
     cols, rows = table_rows(res)
-    lines = [f"### {res['world']}, seed {res['seed']}: statistical vs image detections "
-             f"(stereo frames at {res['stereo_rate_hz']:g} Hz)", "",
-             "| " + " | ".join(cols) + " |", "|---|" + "---:|" * (len(cols) - 1)]
+    title = (f"### {res['world']}, seed {res['seed']}: statistical vs image detections "
+             f"(stereo frames at {res['stereo_rate_hz']:g} Hz)")
+    note = ("Detection precision / recall: statistical = the sensor model's draw over the rocks it deems "
+            "visible; image = measured from the renderer's instance image (visible rocks of >= 30 px within "
+            "the stereo range). Fixes come from the iSAM2 + reloc reference pass and are replayed to EKF + reloc.")
+    lines = [title, "", "| " + " | ".join(cols) + " |", "|---|" + "---:|" * (len(cols) - 1)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
-    lines += ["", "Detection precision / recall: statistical = the sensor model's draw over the rocks it deems "
-              "visible; image = measured from the renderer's instance image (visible rocks of >= 30 px within "
-              "the stereo range). Fixes come from the iSAM2 + reloc reference pass and are replayed to EKF + reloc.", ""]
+    lines += ["", note, ""]
     return "\n".join(lines)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -18,8 +17,8 @@ def bench_e2e_cmd(
     stereo_rate_hz: float = typer.Option(
         0.5, "--stereo-rate-hz", help="Stereo frame rate of both sources (the image path renders every frame)."),
     out: Path = typer.Option(..., "--out", help="Output directory (table.md, results.json, statistical/, image/, compare/)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML overrides of the simulator config."),
-    compare_config: Optional[Path] = typer.Option(None, "--compare-config", help="YAML overrides of the comparison config."),
+    config: Path | None = typer.Option(None, "--config", help="YAML overrides of the simulator config."),
+    compare_config: Path | None = typer.Option(None, "--compare-config", help="YAML overrides of the comparison config."),
     rrd: bool = typer.Option(False, "--rrd/--no-rrd", help="Also write compare/compare.rrd (rerun)."),
 ) -> None:
     """Simulate one traverse, run it with statistical and with image detections through EKF and
