@@ -5,8 +5,9 @@ them: first on the "black" pixels of a checkerboard; a "white" pixel takes the f
 black neighbours (up, down, left, right) when they all agree and lie on the same surface as the
 pixel (same rock id, inverse depth the mean of theirs within a tolerance, as it is on a plane);
 every other sun-facing pixel gets its own ray. Only a shadow that covers a white pixel and none
-of its four neighbours (one isolated pixel, or a one-pixel diagonal line) can be missed; on 12
-held-out rover views none was (docs/detectors.md), and about half the shadow rays are saved. The
+of its four neighbours (one isolated pixel, or a one-pixel diagonal line) can be missed: 12 of
+9.2 M pixels on the 40 held-out views of ``fgslam bench detect`` (docs/detectors.md), for about
+half the shadow rays. The
 right view of a rectified pair takes the left view's flag where it sees the same surface point
 (:func:`right_from_left`).
 """
