@@ -103,14 +103,12 @@ def right_from_left(lit_left: np.ndarray, depth_left_m: np.ndarray, facing_right
     steady = np.ones((H, W), dtype=bool)
     steady[:, 1:] = lit_left[:, 1:] == lit_left[:, :-1]
     steady[:, :-1] &= steady[:, 1:].copy()
-    fr = np.flatnonzero(facing_right)
-    z = z_right_m[fr]
-    u = np.floor(col[fr] + np.float32(0.5) + np.float32(disparity_px_m) / z).astype(np.intp)
-    inside = np.flatnonzero(u < W)
-    left_pix = fr[inside] - col[fr[inside]] + u[inside]
-    same = (np.abs(depth_left_m[left_pix] - z[inside]) < 0.01 + 0.01 * z[inside]) & steady.ravel()[left_pix]
-    lit = np.zeros(len(facing_right), dtype=bool)
-    lit[fr[inside[same]]] = lit_left.ravel()[left_pix[same]]
-    todo = np.ones(len(fr), dtype=bool)
-    todo[inside[same]] = False
-    return lit, fr[todo]
+    n = len(facing_right)
+    u = np.floor(col + np.float32(0.5) + np.float32(disparity_px_m) / z_right_m)  # float64; z inf on a miss
+    ok = facing_right & (u < W)
+    left_pix = np.where(ok, np.arange(n) - col + u.astype(np.intp), 0)
+    with np.errstate(invalid="ignore"):  # inf - inf where neither view hits: not facing anyway
+        same = np.abs(depth_left_m[left_pix] - z_right_m) < 0.01 + 0.01 * z_right_m
+    same &= ok
+    same &= steady.ravel()[left_pix]
+    return same & lit_left.ravel()[left_pix], np.flatnonzero(facing_right & ~same)
