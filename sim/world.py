@@ -45,12 +45,28 @@ IMPORTED_TRAVERSE_M = 80.0
 IMPORTED_MEAN_SPEED_MPS = 0.08
 
 
+@dataclass(frozen=True)
+class RayHits:
+    """First hits of N rays: ``t_m`` (N,) float32 distance along the unit direction (inf: miss),
+    ``rock`` (N,) int32 row of the rock hit (-1: terrain or miss), ``normal`` (N, 3) float32 unit
+    surface normal turned towards the ray's origin (zero on a miss)."""
+
+    t_m: np.ndarray
+    rock: np.ndarray
+    normal: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        """Boolean (N,): the ray hit a surface."""
+        return np.isfinite(self.t_m)
+
+
 class RaycastScene:
     """open3d ``RaycastingScene`` over the terrain and the merged rock mesh.
 
-    ``cast(rays)`` with rays (N, 6) = (origin xyz, direction xyz) returns ``t_hit`` (N,) (inf on a
-    miss), ``rock`` (N,) the row of the rock hit first (-1 for terrain or a miss) and
-    ``normal`` (N, 3) the unit normal of the surface hit.
+    Rays are (N, 6) = (origin xyz, unit direction xyz) in world metres. ``first_hits`` answers in
+    float32 (what the renderer needs), ``cast`` in float64, ``unoccluded`` is the cheaper any-hit
+    test (shadow rays). ``nthreads`` 0 lets open3d use every core.
     """
 
     def __init__(self, terrain: Heightmap, rocks: Rocks) -> None:
@@ -58,32 +74,59 @@ class RaycastScene:
 
         o3d = open3d()
         self._o3c = o3d.core
-        self.scene = o3d.t.geometry.RaycastingScene()
+        self._scene = o3d.t.geometry.RaycastingScene()
         tv, tt = terrain.mesh()
-        self.terrain_geometry = self.scene.add_triangles(
+        self.terrain_geometry = self._scene.add_triangles(
             o3d.core.Tensor(tv.astype(np.float32)), o3d.core.Tensor(tt.astype(np.uint32))
         )
         self.rock_geometry = -1
-        self._triangle_rock = rocks.triangle_rock
+        self._triangle_rock = np.asarray(rocks.triangle_rock, dtype=np.int32)
         if len(rocks):
-            self.rock_geometry = self.scene.add_triangles(
+            self.rock_geometry = self._scene.add_triangles(
                 o3d.core.Tensor(rocks.vertices_m.astype(np.float32)),
                 o3d.core.Tensor(rocks.triangles.astype(np.uint32)),
             )
+        z_top = float(terrain.z_m.max())
+        if len(rocks):
+            z_top = max(z_top, float(rocks.vertices_m[:, 2].max()))
+        self.z_bottom_m = float(terrain.z_m.min())  # lowest terrain point
+        self.z_top_m = z_top  # highest vertex of terrain or rocks: nothing blocks a ray above it
+
+    def _tensor(self, rays: np.ndarray):
+        rays = np.ascontiguousarray(rays, dtype=np.float32).reshape(-1, 6)
+        return rays, self._o3c.Tensor.from_numpy(rays)
+
+    def first_hits(self, rays: np.ndarray, nthreads: int = 0) -> RayHits:
+        """First surface hit of each ray (N, 6), float32 (see :class:`RayHits`)."""
+        rays, tensor = self._tensor(rays)
+        if len(rays) == 0:
+            return RayHits(np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros((0, 3), np.float32))
+        ans = self._scene.cast_rays(tensor, nthreads=nthreads)
+        t = ans["t_hit"].numpy()
+        rock = np.full(len(rays), -1, dtype=np.int32)
+        on_rock = np.flatnonzero(ans["geometry_ids"].numpy() == self.rock_geometry)  # a miss has INVALID_ID
+        rock[on_rock] = self._triangle_rock[ans["primitive_ids"].numpy()[on_rock]]
+        normal = ans["primitive_normals"].numpy()
+        # meshes wound inwards (rare, imported ones) give normals facing away from the ray
+        dn = normal[:, 0] * rays[:, 3]
+        dn += normal[:, 1] * rays[:, 4]
+        dn += normal[:, 2] * rays[:, 5]
+        back = np.flatnonzero(dn > -1e-12)
+        normal[back] = -normal[back]
+        return RayHits(t, rock, normal)
 
     def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Cast rays (N, 6) in world metres; see the class doc for the returned arrays."""
-        rays = np.ascontiguousarray(rays, dtype=np.float32).reshape(-1, 6)
+        """First hits of rays (N, 6), float64: ``t_hit`` (N,) (inf on a miss), ``rock`` (N,) int64
+        rock row (-1 for terrain or a miss), ``normal`` (N, 3) unit normal towards the ray's origin."""
+        h = self.first_hits(rays)
+        return h.t_m.astype(float), h.rock.astype(np.int64), h.normal.astype(float)
+
+    def unoccluded(self, rays: np.ndarray, t_far_m: float = np.inf, nthreads: int = 0) -> np.ndarray:
+        """Boolean (N,): rays (N, 6) that meet no surface within ``t_far_m`` (any-hit test)."""
+        rays, tensor = self._tensor(rays)
         if len(rays) == 0:
-            return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        ans = self.scene.cast_rays(self._o3c.Tensor(rays))
-        t_hit = ans["t_hit"].numpy().astype(float)
-        geom = ans["geometry_ids"].numpy().astype(np.int64)
-        prim = ans["primitive_ids"].numpy().astype(np.int64)
-        rock = np.full(len(rays), -1, dtype=np.int64)
-        on_rock = (geom == self.rock_geometry) & np.isfinite(t_hit)
-        rock[on_rock] = self._triangle_rock[prim[on_rock]]
-        return t_hit, rock, ans["primitive_normals"].numpy().astype(float)
+            return np.zeros(0, dtype=bool)
+        return ~self._scene.test_occlusions(tensor, tfar=float(t_far_m), nthreads=nthreads).numpy()
 
 
 @dataclass

@@ -88,3 +88,22 @@ def test_pick_threshold_for_goal_balances_the_margins():
         o = evaluate(dets, labels, float(other))
         assert min(o.precision - 0.8, o.recall - 0.6) <= best + 1e-12
     assert q.precision >= 0.8 and q.recall >= 0.6
+
+
+def test_timing_rows_check_the_stereo_pair_render_goal():
+    from fgslam.bench.detect import RENDER_STEREO_PAIR_GOAL_S, timing_rows
+
+    def res(cpu_s: float) -> dict:
+        entry = {"image_shape": [360, 640], "input_size_wh": [640, 368], "infer_image_s": 0.01, "infer_image_cpu_s": 0.01,
+                 "infer_network_s": 0.01, "model_mb": 0.66, "render_stereo_pair_s": 2 * cpu_s,
+                 "render_stereo_pair_cpu_s": cpu_s, "sgbm_s": 0.03, "sgbm_cpu_s": 0.03,
+                 "render_stereo_pair_goal_s": RENDER_STEREO_PAIR_GOAL_S}
+        return {"models": {"rover": entry}}
+
+    cols, rows = timing_rows(res(0.07))
+    goal = rows[0][cols.index("render goal")]
+    assert goal == "pair <= 100 ms (met)"
+    # judged on CPU time (one thread): a slow wall clock on a shared machine does not fail it
+    assert "140 ms (70 ms)" in rows[0][cols.index("render wall (CPU)")]
+    cols, rows = timing_rows(res(0.12))
+    assert rows[0][cols.index("render goal")] == "pair <= 100 ms (not met)"

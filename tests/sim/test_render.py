@@ -129,3 +129,54 @@ def test_bad_requests_are_rejected():
         r.nadir(0.1, Lighting(sun_elevation_deg=-5.0))
     with pytest.raises(RenderError, match="4x4"):
         r.stereo(np.eye(3), PinholeCamera.from_fov(64, 48, 60.0), 0.1)
+
+
+def test_raycast_scene_first_hits_and_occlusion():
+    """The scene's own queries: distance, rock id and a normal facing the ray; misses; any-hit
+    shadow tests that stop at ``t_far_m``."""
+    world = _world([(1.0, 0.0, 0.5)])
+    scene = world.raycast_scene()
+    rays = np.array([[1.0, 0.0, 3.0, 0.0, 0.0, -1.0],  # onto the rock's top
+                     [-3.0, 2.0, 3.0, 0.0, 0.0, -1.0],  # onto flat soil
+                     [0.0, 0.0, 3.0, 0.0, 0.0, 1.0]], np.float32)  # up into the sky
+    h = scene.first_hits(rays)
+    assert h.t_m.dtype == np.float32 and list(h.hit) == [True, True, False]
+    assert h.t_m[0] == pytest.approx(3.0 - 0.5, abs=0.02) and h.t_m[1] == pytest.approx(3.0, abs=1e-5)
+    assert list(h.rock) == [0, -1, -1]
+    assert np.all(h.normal[:2] @ np.array([0.0, 0.0, -1.0]) < 0)  # turned towards the ray origin
+    t64, rock64, _ = scene.cast(rays)
+    assert t64.dtype == np.float64 and np.array_equal(rock64, h.rock)
+    assert 0.0 < scene.z_bottom_m + 1e-9 and scene.z_top_m == pytest.approx(0.5, abs=0.02)
+    # sideways past the rock: blocked, unless the test stops before it
+    side = np.array([[-1.0, 0.0, 0.25, 1.0, 0.0, 0.0]], np.float32)
+    assert not scene.unoccluded(side)[0] and scene.unoccluded(side, t_far_m=1.0)[0]
+
+
+def test_sampled_shadows_agree_with_one_ray_per_pixel():
+    """The checkerboard shadow sampling (about half the rays) gives the flags of a shadow ray for
+    every sun-facing pixel, shadow edges and rock silhouettes included."""
+    from sim.render.camera import pixel_grid, view_rays
+    from sim.render.shading import cos_to_sun
+    from sim.render.shadows import SunTest, sampled_sunlit
+
+    world = _world([(3.0, 0.4, 0.6), (3.6, -0.3, 0.5), (2.5, -0.9, 0.3), (5.0, 1.2, 0.8), (4.2, 0.1, 0.15)])
+    cam = PinholeCamera.from_fov(200, 120, 80.0)
+    T_wc = rover_pose(world, np.array([0.0, 0.0]), 0.0) @ np.array(
+        [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.8], [0.0, 0.0, 0.0, 1.0]])
+    grid = pixel_grid(cam)
+    rays = view_rays(T_wc[None, :3, 3], grid.dirs_cam @ T_wc[:3, :3].T.astype(np.float32))
+    scene = world.raycast_scene()
+    hits = scene.first_hits(rays)
+    for elevation, azimuth in ((15.0, 90.0), (30.0, 300.0)):
+        sun = Lighting(sun_elevation_deg=elevation, sun_azimuth_deg=azimuth).sun_dir().astype(np.float32)
+        facing = cos_to_sun(hits.normal, sun) > 0
+        test = SunTest(scene, rays, hits, sun)
+        every = np.zeros(len(rays), dtype=bool)
+        every[facing] = test.sunlit(np.flatnonzero(facing))
+        test.n_rays = 0
+        shape = (cam.height_px, cam.width_px)
+        lit = sampled_sunlit(test.sunlit, facing.reshape(shape), hits.rock.reshape(shape),
+                             (1.0 / (hits.t_m * grid.z_cam)).reshape(shape))
+        assert np.array_equal(lit, every)
+        assert 0.45 * facing.sum() < test.n_rays < 0.7 * facing.sum()
+        assert 0.05 * facing.sum() < np.sum(facing & ~every)  # the scene has shadows to get right

@@ -28,13 +28,15 @@ def progress_ticks(err: Console, label_width: int = 45) -> Iterator[Tick]:
 
 def print_tables(tables: Iterable[tuple[str, Sequence[str], Sequence[Sequence[str]]]], width: int) -> None:
     """Print (title, columns, rows) tables on stdout, right-aligned, at least ``width`` wide."""
+    from rich.markup import escape
+
     console = Console(width=max(Console().width, width))
     for title, cols, rows in tables:
-        table = Table(title=title)
+        table = Table(title=escape(title))
         for c in cols:
-            table.add_column(c, justify="right")
+            table.add_column(escape(c), justify="right")
         for r in rows:
-            table.add_row(*r)
+            table.add_row(*(escape(str(v)) for v in r))  # units in brackets ("ATE [m]") are not markup
         console.print(table)
 
 

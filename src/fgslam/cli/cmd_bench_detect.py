@@ -38,7 +38,7 @@ def bench_detect_cmd(
     print_tables(
         [
             ("Rock detectors on held-out rendered worlds", *result_rows(res)),
-            ("Timings (onnxruntime, 1 thread)", *timing_rows(res)),
+            ("Timings (one thread: onnxruntime, open3d, OpenCV)", *timing_rows(res)),
         ],
         width=160,
     )

@@ -59,9 +59,7 @@ def sim_cmd(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from fgslam.io.catalog_csv import write_catalog_csv
-    from sim.bag_writer import write_bag
-    from sim.outputs import write_outputs
+    from fgslam.io.sim_dir import write_sim_dir
     from sim.simulate import simulate
 
     if detections not in ("statistical", "image"):
@@ -71,19 +69,15 @@ def sim_cmd(
     cfg = load_sim_config(world, seed, distance_m, config)
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                   console=console, transient=True) as progress:
-        task = progress.add_task(f"simulating {world} (seed {seed})", total=3)
+        task = progress.add_task(f"simulating {world} (seed {seed})", total=2)
         run = simulate(cfg)
         if detections == "image":
             from sim.image_detections import ImageDetectionConfig, with_image_detections
 
             progress.update(task, description="rendering stereo/orbital images and detecting rocks")
             run = with_image_detections(run, ImageDetectionConfig(rate_hz=image_rate_hz))
-        progress.update(task, advance=1, description="writing bag")
-        out.mkdir(parents=True, exist_ok=True)
-        summary = write_bag(out / "bag", run.measurements, overwrite=overwrite)
-        progress.update(task, advance=1, description="writing catalog, world and orbital image")
-        write_outputs(run, out, catalog=False)
-        write_catalog_csv(out / "catalog.csv", run.catalog)
+        progress.update(task, advance=1, description="writing bag, catalog, world and orbital image")
+        summary = write_sim_dir(run, out, overwrite=overwrite)
         progress.update(task, advance=1)
     wall = time.perf_counter() - t0
     s = run.stats
