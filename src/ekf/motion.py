@@ -43,7 +43,7 @@ def process_noise_body(
     s_rot = cfg.rot_floor + cfg.rot_per_turn * turn + cfg.rot_per_rough * rough
     dist = speed * step.dt
     var_t = np.array([s_fwd, s_lat, s_vert]) ** 2 * step.dt + dist * np.array(
-        [cfg.fwd_per_sqrtm**2, cfg.lat_per_sqrtm**2, cfg.lat_per_sqrtm**2])
+        [cfg.fwd_per_sqrtm**2, cfg.lat_per_sqrtm**2, 0.0])
     var_r = np.full(3, s_rot**2 * step.dt)
     return var_t, var_r
 
