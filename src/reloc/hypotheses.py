@@ -16,6 +16,7 @@ from itertools import permutations
 import numpy as np
 
 from reloc.catalog import Catalog
+from reloc.hashing import expand_runs
 from reloc.procrustes import similarity_batch
 
 __all__ = ["Hypotheses", "LocalTriangles", "generate_hypotheses", "pose_bins"]
@@ -101,16 +102,13 @@ def generate_hypotheses(
         tol_q = size_log_tol / catalog.size_q_step
         size_lo = np.clip(np.floor(loc_q - tol_q) - 1, 0, 255).astype(np.uint8)[var.vertices]
         size_hi = np.clip(np.ceil(loc_q + tol_q) + 1, 0, 255).astype(np.uint8)[var.vertices]
-    n_raw = catalog.hash.count(var.sides_m, var.handedness, var_tol)
-    bounds = np.searchsorted(np.cumsum(n_raw), np.arange(chunk_candidates, int(n_raw.sum()), chunk_candidates))
+    run_q, run_start, run_n = catalog.hash.runs(var.sides_m, var.handedness, var_tol)
+    bounds = np.searchsorted(np.cumsum(run_n), np.arange(chunk_candidates, int(run_n.sum()), chunk_candidates))
     parts = []
-    for sl in np.split(np.arange(len(var)), np.unique(bounds)):
-        if sl.size == 0:
-            continue
-        qi, pos = catalog.hash.query(var.sides_m[sl], var.handedness[sl], var_tol[sl])
+    for sl in np.split(np.arange(run_n.size), np.unique(bounds)):
+        qi, pos = expand_runs(run_q[sl], run_start[sl], run_n[sl])
         if qi.size == 0:
             continue
-        qi = sl[qi]
         if sized:
             cq = np.take(catalog.tri_size_q, pos, axis=0)
             lo, hi = np.take(size_lo, qi, axis=0), np.take(size_hi, qi, axis=0)

@@ -14,7 +14,7 @@ from itertools import combinations
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["knn_triangles"]
+__all__ = ["knn_triangles", "neighbour_rank"]
 
 
 def knn_triangles(
@@ -60,3 +60,24 @@ def knn_triangles(
     out[:, 1] = rest % n64
     out[:, 0] = rest // n64
     return out
+
+
+def neighbour_rank(xy_m: np.ndarray, tri: np.ndarray, k: int) -> np.ndarray:
+    """Per triangle (T,) of ``tri`` (T, 3) over the few points ``xy_m`` (N, 2): the smallest, over
+    its three vertices as anchor, of the larger neighbour rank (1 = nearest) of the other two
+    among the anchor's ``k`` nearest; ``k + 1`` where no vertex has both. A triangle of close
+    neighbours in one map is likely to be a triangle of close neighbours, and so indexed, in the
+    other map too (dense O(N^2) ranks: for local maps only)."""
+    n = int(xy_m.shape[0])
+    tri = np.asarray(tri, dtype=np.int64).reshape(-1, 3)
+    k = int(min(k, n - 1))
+    rank = np.full((n, n), k + 1, np.int64)
+    if k >= 1 and tri.size:
+        _, nn = cKDTree(xy_m).query(xy_m, k=k + 1)
+        rank[np.arange(n)[:, None], nn[:, 1:]] = np.arange(1, k + 1)[None, :]
+    v0, v1, v2 = tri.T
+    return np.minimum.reduce([
+        np.maximum(rank[v0, v1], rank[v0, v2]),
+        np.maximum(rank[v1, v0], rank[v1, v2]),
+        np.maximum(rank[v2, v0], rank[v2, v1]),
+    ])
