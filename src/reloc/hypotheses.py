@@ -85,13 +85,22 @@ def generate_hypotheses(
     side_tol_m: float,
     scale_tol: float,
     size_log_tol: float | None,
+    inner_tol_m: float | None = None,
     chunk_candidates: int = 1 << 21,
 ) -> Hypotheses:
     """Candidate poses for local triangles ``tri`` against ``catalog``; see module doc.
-    Hash candidates are processed in chunks of about ``chunk_candidates`` (bounded memory)."""
+    ``inner_tol_m``: leave out the candidates a call with ``side_tol_m=inner_tol_m`` returns
+    (a wider second pass then adds only new hypotheses). Hash candidates are processed in chunks
+    of about ``chunk_candidates`` (bounded memory)."""
     tol = side_tol_m + scale_tol * tri.sides_m[:, 2]
     var, var_sides, src = relabel_variants(tri, tol)
     var_tol = tol[src]
+    var_inner = None
+    if inner_tol_m is not None:
+        inner = inner_tol_m + scale_tol * tri.sides_m[:, 2]
+        # a variant that the inner pass did not query keeps all its candidates
+        s_, t_ = var_sides, 2.0 * inner[src]
+        var_inner = np.where((s_[:, 0] <= s_[:, 1] + t_) & (s_[:, 1] <= s_[:, 2] + t_), inner[src], -1.0)
     if len(var) == 0:
         return _empty()
     sized = size_log_tol is not None and local_log_size is not None
@@ -121,6 +130,9 @@ def generate_hypotheses(
         vt = np.take(var_tol, qi)
         d = np.abs(cat_sides - ref)
         ok = (d[:, 0] <= vt) & (d[:, 1] <= vt) & (d[:, 2] <= vt)
+        if var_inner is not None:
+            it = np.take(var_inner, qi)
+            ok &= ~((d[:, 0] <= it) & (d[:, 1] <= it) & (d[:, 2] <= it))
         parts.append((qi[ok], pos[ok]))
     if not parts:
         return _empty()

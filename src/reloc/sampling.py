@@ -26,7 +26,7 @@ def knn_triangles(
     n = int(xy_m.shape[0])
     if n < 3:
         return np.empty((0, 3), np.int32)
-    if n >= 2_097_152:  # n**3 would overflow the int64 triangle codes
+    if n >= 2_097_152:  # three 21-bit vertex ids per int64 triangle code
         raise ValueError(f"knn_triangles supports fewer than 2**21 points, got {n}")
     k = int(min(k, n - 1))
     if k < 2:
@@ -34,31 +34,34 @@ def knn_triangles(
     tree = tree if tree is not None else cKDTree(xy_m)
     pairs = np.array(list(combinations(range(1, k + 1), 2)), dtype=np.int64)  # columns of knn
     codes = []
-    n64 = np.int64(n)
     # anchors in the tree's leaf order: neighbouring queries touch the same nodes (cache locality)
-    leaf_order = tree.indices.astype(np.int64)
+    leaf_order = tree.indices.astype(np.int32)
     for start in range(0, n, chunk):
         anchor = leaf_order[start : start + chunk]
         _, nn = tree.query(xy_m[anchor], k=k + 1, workers=workers)
-        nn = nn.astype(np.int64)
+        nn = nn.astype(np.int32)  # int32 ids: half the memory traffic of the network below
         # nn[:, 0] is normally the anchor itself, unless duplicates share a position
         a = np.repeat(anchor, len(pairs))
-        b = nn[:, pairs[:, 0]].ravel()
-        c = nn[:, pairs[:, 1]].ravel()
+        b = np.take(nn, pairs[:, 0], axis=1).ravel()  # take: several times faster than nn[:, cols]
+        c = np.take(nn, pairs[:, 1], axis=1).ravel()
         # three-element sorting network (np.sort along a length-3 axis is far slower)
         a, b = np.minimum(a, b), np.maximum(a, b)
         b, c = np.minimum(b, c), np.maximum(b, c)
         a, b = np.minimum(a, b), np.maximum(a, b)
         ok = (a != b) & (b != c)
-        codes.append(((a * n64 + b) * n64 + c)[ok])
+        # bit-packed codes: sorting them sorts by (v0, v1, v2), and decoding needs no division
+        code = a[ok].astype(np.int64) << 42
+        code |= b[ok].astype(np.int64) << 21
+        code |= c[ok]
+        codes.append(code)
     code = np.sort(np.concatenate(codes))
     if code.size:  # unique via sort + diff (np.unique is several times slower here)
         code = code[np.concatenate([[True], code[1:] != code[:-1]])]
+    mask = np.int64((1 << 21) - 1)
     out = np.empty((code.size, 3), np.int32)
-    out[:, 2] = code % n64
-    rest = code // n64
-    out[:, 1] = rest % n64
-    out[:, 0] = rest // n64
+    out[:, 2] = code & mask
+    out[:, 1] = (code >> 21) & mask
+    out[:, 0] = code >> 42
     return out
 
 

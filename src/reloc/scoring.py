@@ -89,6 +89,8 @@ def one_to_one(dist: np.ndarray, idx: np.ndarray, radius_m: float) -> Inliers:
         return Inliers(empty, empty, np.empty(0))
     d = dist[local]
     cat = idx[local]
+    if np.unique(cat).size == cat.size:  # no catalog rock claimed twice (the usual case)
+        return Inliers(local, cat.astype(np.int64), d)
     order = np.lexsort((d, cat))
     first = np.ones(order.size, bool)
     first[1:] = cat[order][1:] != cat[order][:-1]
