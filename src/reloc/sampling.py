@@ -48,13 +48,13 @@ def knn_triangles(
         a, b = np.minimum(a, b), np.maximum(a, b)
         b, c = np.minimum(b, c), np.maximum(b, c)
         a, b = np.minimum(a, b), np.maximum(a, b)
-        ok = (a != b) & (b != c)
         # bit-packed codes: sorting them sorts by (v0, v1, v2), and decoding needs no division
-        code = a[ok].astype(np.int64) << 42
-        code |= b[ok].astype(np.int64) << 21
-        code |= c[ok]
+        code = a.astype(np.int64) << 42
+        code |= b.astype(np.int64) << 21
+        code |= c
         codes.append(code)
-    code = np.sort(np.concatenate(codes))
+    code = np.concatenate(codes)
+    code.sort()
     if code.size:  # unique via sort + diff (np.unique is several times slower here)
         code = code[np.concatenate([[True], code[1:] != code[:-1]])]
     mask = np.int64((1 << 21) - 1)
@@ -62,6 +62,10 @@ def knn_triangles(
     out[:, 2] = code & mask
     out[:, 1] = (code >> 21) & mask
     out[:, 0] = code >> 42
+    # a repeated vertex (an anchor whose nearest neighbour shares its position): not a triangle
+    bad = (out[:, 0] == out[:, 1]) | (out[:, 1] == out[:, 2])
+    if bad.any():
+        out = out[~bad]
     return out
 
 
