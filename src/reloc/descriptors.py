@@ -57,7 +57,10 @@ _ORDER = np.zeros((8, 3), np.int64)
 _ODD = np.zeros(8, bool)
 for _code in range(8):
     _gt = {(0, 1): bool(_code & 4), (0, 2): bool(_code & 2), (1, 2): bool(_code & 1)}
-    _rank = [sum((_gt[(i, j)] if i < j else not _gt[(j, i)]) for j in range(3) if j != i) for i in range(3)]
+    # rank of side i: how many sides it exceeds (ties: the later one is the larger)
+    _rank = [
+        sum(_gt[(i, j)] if i < j else not _gt[(j, i)] for j in range(3) if j != i) for i in range(3)
+    ]
     if sorted(_rank) == [0, 1, 2]:  # two of the eight codes are cyclic and cannot occur
         _ORDER[_code] = np.argsort(_rank)
         _ODD[_code] = np.linalg.det(np.eye(3)[_ORDER[_code]]) < 0
@@ -72,7 +75,7 @@ def label_triangles(
     Works on squared sides (same order, no square root until the end) and picks the sorting
     permutation from a table of the three side comparisons, in the dtype of ``xy_m``."""
     tri = np.asarray(tri)
-    p0, p1, p2 = np.take(xy_m, tri[:, 0], axis=0), np.take(xy_m, tri[:, 1], axis=0), np.take(xy_m, tri[:, 2], axis=0)
+    p0, p1, p2 = (np.take(xy_m, tri[:, i], axis=0) for i in range(3))
     d21, d02, d10 = p2 - p1, p0 - p2, p1 - p0
     del p0, p1, p2
     # squared side i is the one opposite vertex i

@@ -110,7 +110,9 @@ class TriangleHash:
         """
         return expand_runs(*self.runs(sides_m, handedness, tol_m))
 
-    def estimate_count(self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray) -> np.ndarray:
+    def estimate_count(
+        self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray
+    ) -> np.ndarray:
         """Approximate :meth:`count` (Q,) float from a coarse 3D histogram of the keys (cells of
         ``coarse_bins`` hash bins, summed-area table built on first use): O(1) per query, for
         ranking queries by how common their shape is."""
@@ -126,7 +128,7 @@ class TriangleHash:
         total = np.zeros(sides_m.shape[0])
         for corner in range(8):  # inclusion-exclusion over the box corners
             pick = [(hi if corner >> d & 1 else lo)[:, d] for d in range(3)]
-            sign = (-1.0) ** (3 - bin(corner).count("1"))
+            sign = (-1.0) ** (3 - corner.bit_count())
             total += sign * sat[h, pick[0], pick[1], pick[2]]
         # the box holds whole cells: scale by the fraction of its volume the query covers
         frac = np.prod(np.minimum(1.0, 2.0 * tol / np.maximum((hi - lo) * cell, 1e-12)), axis=1)
@@ -145,8 +147,10 @@ class TriangleHash:
         return sat, coarse_bins * self.bin_m
 
 
-def expand_runs(qidx: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(query index, position) of every key in the runs ``(qidx, starts, counts)`` of :meth:`TriangleHash.runs`."""
+def expand_runs(
+    qidx: np.ndarray, starts: np.ndarray, counts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(query index, position) of every key in the runs of :meth:`TriangleHash.runs`."""
     total = int(counts.sum())
     if total == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)

@@ -100,7 +100,8 @@ def generate_hypotheses(
         inner = inner_tol_m + scale_tol * tri.sides_m[:, 2]
         # a variant that the inner pass did not query keeps all its candidates
         s_, t_ = var_sides, 2.0 * inner[src]
-        var_inner = np.where((s_[:, 0] <= s_[:, 1] + t_) & (s_[:, 1] <= s_[:, 2] + t_), inner[src], -1.0)
+        queried = (s_[:, 0] <= s_[:, 1] + t_) & (s_[:, 1] <= s_[:, 2] + t_)
+        var_inner = np.where(queried, inner[src], -1.0)
     if len(var) == 0:
         return _empty()
     sized = size_log_tol is not None and local_log_size is not None
@@ -112,7 +113,8 @@ def generate_hypotheses(
         size_lo = np.clip(np.floor(loc_q - tol_q) - 1, 0, 255).astype(np.uint8)[var.vertices]
         size_hi = np.clip(np.ceil(loc_q + tol_q) + 1, 0, 255).astype(np.uint8)[var.vertices]
     run_q, run_start, run_n = catalog.hash.runs(var.sides_m, var.handedness, var_tol)
-    bounds = np.searchsorted(np.cumsum(run_n), np.arange(chunk_candidates, int(run_n.sum()), chunk_candidates))
+    cuts = np.arange(chunk_candidates, int(run_n.sum()), chunk_candidates)
+    bounds = np.searchsorted(np.cumsum(run_n), cuts)
     parts = []
     for sl in np.split(np.arange(run_n.size), np.unique(bounds)):
         qi, pos = expand_runs(run_q[sl], run_start[sl], run_n[sl])

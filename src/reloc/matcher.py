@@ -54,13 +54,16 @@ class MatcherConfig:
     """Matcher parameters (defaults in code). Lengths in metres.
 
     ``sigma_m``: expected per-axis position noise between local map and catalog; the side
-    tolerance (``side_tol_sigmas`` x sqrt(2) x sigma), inlier radius (``inlier_sigmas`` x sigma,
-    at least ``min_inlier_radius_m``) and vote bins derive from it. ``scale_tol``: allowed |scale-1|.
+    tolerance (``side_tol_sigmas`` x sqrt(2) x sigma; a second pass adds the candidates up to
+    ``wide_side_tol_sigmas`` while fewer than ``wide_max_hypotheses`` hypotheses were generated),
+    inlier radius (``inlier_sigmas`` x sigma, at least ``min_inlier_radius_m``) and vote bins
+    derive from it. ``scale_tol``: allowed |scale-1|.
     ``size_ratio_max``: largest allowed ratio of matched rock diameters (None: no size check).
-    ``local_neighbours``: k for local triangles. ``batch_triangles``: local triangles in the first batch, doubling up to
-    ``max_batch_triangles``;
-    ``verify_per_batch``: pose bins verified per batch (best coarse score first); ``first_stage_factor``: inlier radius
-    multiplier of the first scoring stage (a 3-point pose is noisier than a re-fitted one);
+    ``local_neighbours``: k for local triangles. ``batch_triangles``: local triangles in the
+    first batch, doubling up to ``max_batch_triangles``; ``verify_per_batch``: pose bins verified
+    per batch (best coarse score first), and ``verify_by_votes`` more (most votes first, at
+    least 2); ``first_stage_factor``: inlier radius multiplier of the first scoring stage (a
+    3-point pose is noisier than a re-fitted one);
     ``refits``: least-squares re-fit/re-score rounds; ``polish_sigmas``: final fit on pairs
     closer than this many sigma; ``growth_reach_m``: distances from the hypothesis' triangle
     within which inliers are collected and re-fitted before the whole map is scored;
@@ -68,7 +71,8 @@ class MatcherConfig:
     ``min_inliers``: fewest inliers ever accepted. ``max_log10_false_alarm``: acceptance
     threshold on log10(bound on the chance that a wrong pose is accepted), checked after every
     batch and after every verified bin (the search stops once it is met); ``early_exit_log10``:
-    a stricter level for stopping in the middle of a batch (default: the acceptance threshold). ``metric``: both maps are metric, so the final least-squares re-fit is
+    a stricter level for stopping in the middle of a batch (default: the acceptance threshold).
+    ``metric``: both maps are metric, so the final least-squares re-fit is
     rigid (scale 1; a 3-point similarity still checks the scale of every candidate against 1
     within ``scale_tol``); False re-fits a similarity. ``seed``: order in which local triangles
     are tried, and ``fewest_candidates_first`` tries first those with the fewest expected
@@ -204,7 +208,8 @@ class ConstellationMatcher:
         # distinct poses a verification can reach: its vote bin (about a 3-point pose's error) at
         # the resolution of the inlier radius (r in position, r at the map's edge in heading)
         r = cfg.inlier_radius_m
-        st.poses_per_verification = max(1.0, theta_bin * (radius - r) / r) * max(1.0, xy_bin / r) ** 2
+        reach_theta, reach_xy = max(1.0, theta_bin * (radius - r) / r), max(1.0, xy_bin / r)
+        st.poses_per_verification = reach_theta * reach_xy**2
         # stages: batches of triangles at the side tolerance, then (``wide_side_tol_sigmas``) the
         # same triangles again for the candidates between that and the wider tolerance
         passes = [(cfg.side_tol_m, None)]
@@ -282,15 +287,17 @@ class ConstellationMatcher:
         k = lab.keep
         return LocalTriangles(lab.vertices[k].astype(np.int64), lab.sides_m[k], lab.handedness[k])
 
-    def _triangle_order(self, xy: np.ndarray, tri: LocalTriangles, log_size: np.ndarray | None) -> np.ndarray:
-        """Order in which local triangles are tried: seeded random, then (``fewest_candidates_first``)
-        stably by their expected number of hypotheses (catalog triangles of that shape, from the
-        hash's coarse histogram, times the fraction of catalog rocks size-compatible with each
-        vertex) times (neighbour rank)^``rank_power``. Whether a local triangle is also in the
-        catalog hardly depends on the first factor, which spans three orders of magnitude, so
-        distinctive triangles find the true pose with far fewer hypotheses (fewer to generate,
-        score and pay for in the acceptance test). The order uses the local map and the
-        catalog's shape and size statistics only, never a pose's inliers."""
+    def _triangle_order(
+        self, xy: np.ndarray, tri: LocalTriangles, log_size: np.ndarray | None
+    ) -> np.ndarray:
+        """Order in which local triangles are tried: seeded random, then
+        (``fewest_candidates_first``) stably by their expected number of hypotheses (catalog
+        triangles of that shape, from the hash's coarse histogram, times the fraction of catalog
+        rocks size-compatible with each vertex) times (neighbour rank)^``rank_power``. Whether
+        a local triangle is also in the catalog hardly depends on the first factor, which spans
+        three orders of magnitude, so distinctive triangles find the true pose with far fewer
+        hypotheses (fewer to generate, score and pay for in the acceptance test). The order uses
+        the local map and the catalog's shape and size statistics only, never a pose's inliers."""
         cfg = self.config
         order = np.random.default_rng(cfg.seed).permutation(len(tri))
         if not cfg.fewest_candidates_first:
@@ -300,7 +307,8 @@ class ConstellationMatcher:
         n = self.catalog.hash.estimate_count(tri.sides_m, tri.handedness, tol)
         if log_size is not None and cfg.size_ratio_max is not None:
             # expected survivors of the size check: rocks of unusual size are distinctive too
-            frac = size_compatible_fractions(log_size, self._cat_log_size_sorted, math.log(cfg.size_ratio_max))
+            tol_log = math.log(cfg.size_ratio_max)
+            frac = size_compatible_fractions(log_size, self._cat_log_size_sorted, tol_log)
             n *= np.prod(frac[tri.vertices], axis=1)
         # triangles of farther neighbours are less often in the catalog's index (measured at
         # 100 000 clustered rocks: 18 % of rank-2 local triangles have a true match, 4 % of
@@ -343,12 +351,13 @@ class ConstellationMatcher:
         cand = np.concatenate([cand, by_votes])
         if cand.size == 0:
             return
-        # remember the coarse score and votes each bin was verified at (sorted keys, for searchsorted)
+        # the coarse score and votes each bin was verified at (sorted keys, for searchsorted)
         vk = np.concatenate([st.verified_keys, uniq[cand]])
         vb = np.concatenate([st.verified_best, best[cand]])
         vv = np.concatenate([st.verified_votes, votes[cand]])
         vk, first_at = np.unique(vk[::-1], return_index=True)  # the newest entry of each key
-        st.verified_keys, st.verified_best, st.verified_votes = vk, vb[::-1][first_at], vv[::-1][first_at]
+        st.verified_keys = vk
+        st.verified_best, st.verified_votes = vb[::-1][first_at], vv[::-1][first_at]
         for b in cand:
             i = int(order[first[b]])
             sim = Similarity2D(float(hyp_all.theta_rad[i]), hyp_all.translation[i], float(hyp_all.scale[i]))
@@ -454,9 +463,8 @@ class ConstellationMatcher:
         Under a wrong pose the inlier count beyond the 3 rocks of the generating triangle is
         bounded by Binomial(M - 3, mean p_i) (Hoeffding), Bonferroni over the poses tested so far
         (every hypothesis generated, plus ``poses_per_verification`` for every verified one: its
-        re-fits move the pose across its 3-point uncertainty and keep the best), and a
-        sequential-testing weight: the search may stop after stage s (of doubling batches) with weight 2^-(s+1), and
-        after its last stage with weight 1/2; the weights sum to at most 1.
+        re-fits move the pose across its 3-point uncertainty and keep the best), and the
+        sequential-testing weight of the current stage (:func:`_stage_weights`).
         """
         sim, inl = st.best
         p = float(np.mean(self._chance(sim, xy, st)))
@@ -475,7 +483,8 @@ def _stage_weights(n_stages: list[int]) -> list[float]:
     not raise the false-alarm bound. A pass with share c gives its stage s < S weight c 2^-(s+1)
     and its last stage the rest (one pass: 1/4, 1/8, ..., last >= 1/2). The first pass has the
     share 3/4 when a wider second pass follows (which has 1/4)."""
-    shares = [1.0] if len(n_stages) == 1 else [0.75] + [0.25 / (len(n_stages) - 1)] * (len(n_stages) - 1)
+    rest = len(n_stages) - 1
+    shares = [1.0] if rest == 0 else [0.75] + [0.25 / rest] * rest
     out = []
     for share, n in zip(shares, n_stages):
         if n == 1:

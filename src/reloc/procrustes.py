@@ -1,8 +1,9 @@
 """2D similarity transforms by Procrustes (Umeyama 1991), proper rotations only.
 
 ``dst ~= scale * R(theta) @ src + t``. :func:`umeyama_2d` fits one transform to K >= 2 point pairs
-(optionally weighted): the SVD of the cross-covariance with the reflection correction, which in 2D
-has a closed form, so det R = +1 always: a mirrored constellation gets a poor fit instead of a mirrored transform.
+(optionally weighted): the SVD of the cross-covariance with the reflection correction, which in
+2D has a closed form, so det R = +1 always: a mirrored constellation gets a poor fit instead of
+a mirrored transform.
 :func:`similarity_batch` is the closed form of the same fit for H small correspondence sets at once
 (in 2D the optimal rotation angle is ``atan2(sum p x q, sum p . q)`` on centred points).
 """
@@ -54,7 +55,8 @@ def umeyama_2d(
     dst = np.asarray(dst, float)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2 or src.shape[0] < 2:
         raise ValueError(f"umeyama_2d needs two (K>=2, 2) arrays of equal shape, got {src.shape}, {dst.shape}")
-    w = np.full(src.shape[0], 1.0 / src.shape[0]) if weights is None else np.asarray(weights, float) / np.sum(weights)
+    n = src.shape[0]
+    w = np.full(n, 1.0 / n) if weights is None else np.asarray(weights, float) / np.sum(weights)
     mu_s = w @ src
     mu_d = w @ dst
     p = src - mu_s

@@ -66,7 +66,8 @@ coord = st.floats(-50.0, 50.0, allow_nan=False)
 def test_labelling_matches_a_reference(pts, iso):
     p = np.array(pts, float)
     if iso:  # exact ties between sides: an isosceles triangle
-        p[2] = 2 * p[0] - p[1] if np.allclose(p[0], p[1]) else [p[0, 0] - (p[1, 1] - p[0, 1]), p[0, 1] + (p[1, 0] - p[0, 0])]
+        d = p[1] - p[0]
+        p[2] = p[0] + np.array([-d[1], d[0]])  # |p0 p2| = |p0 p1|
     lab = label_triangles(p, np.array([[0, 1, 2]]))
     order, sides, hand = _reference_labels(p)
     np.testing.assert_allclose(lab.sides_m[0], sides, rtol=1e-9, atol=1e-9)
@@ -78,7 +79,8 @@ def test_labelling_matches_a_reference(pts, iso):
     # every labelled vertex faces its side
     for i in range(3):
         others = [j for j in lab.vertices[0] if j != lab.vertices[0][i]]
-        assert math.isclose(float(np.linalg.norm(p[others[0]] - p[others[1]])), lab.sides_m[0][i], rel_tol=1e-9, abs_tol=1e-9)
+        side = float(np.linalg.norm(p[others[0]] - p[others[1]]))
+        assert math.isclose(side, lab.sides_m[0][i], rel_tol=1e-9, abs_tol=1e-9)
 
 
 def test_hash_build_sorts_keys_stably_and_returns_the_permutation():
@@ -117,11 +119,14 @@ def test_wider_pass_adds_exactly_the_candidates_the_tight_pass_left_out():
     lab = label_triangles(local, knn_triangles(local, 5), min_side_m=0.25, min_shape=0.12)
     k = lab.keep
     tri = LocalTriangles(lab.vertices[k].astype(np.int64), lab.sides_m[k], lab.handedness[k])
-    kw = dict(scale_tol=0.02, size_log_tol=math.log(1.6))
+    kw = {"scale_tol": 0.02, "size_log_tol": math.log(1.6)}
     tight = generate_hypotheses(cat, local, lsize, tri, side_tol_m=0.15, **kw)
     wide = generate_hypotheses(cat, local, lsize, tri, side_tol_m=0.3, **kw)
     shell = generate_hypotheses(cat, local, lsize, tri, side_tol_m=0.3, inner_tol_m=0.15, **kw)
-    key = lambda h: {tuple(a) + tuple(b) for a, b in zip(h.local_vertices.tolist(), h.catalog_vertices.tolist())}
+    def key(h):
+        pairs = zip(h.local_vertices.tolist(), h.catalog_vertices.tolist())
+        return {tuple(a) + tuple(b) for a, b in pairs}
+
     assert len(tight) > 0 and len(shell) > 0
     assert not key(tight) & key(shell)
     # the scale check is looser in the wide pass, so it may keep a few tight candidates the

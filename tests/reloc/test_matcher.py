@@ -236,7 +236,8 @@ def test_triangle_order_is_a_seeded_permutation_of_distinctive_triangles_first(c
     assert np.array_equal(np.sort(b), np.arange(len(tri)))
     # the first triangles have fewer catalog look-alikes than the last ones
     cfg = ranked.config
-    n = catalog.hash.count(tri.sides_m, tri.handedness, cfg.side_tol_m + cfg.scale_tol * tri.sides_m[:, 2])
+    tol = cfg.side_tol_m + cfg.scale_tol * tri.sides_m[:, 2]
+    n = catalog.hash.count(tri.sides_m, tri.handedness, tol)
     q = len(tri) // 4
     assert np.mean(n[b[:q]]) < np.mean(n[b[-q:]])
 

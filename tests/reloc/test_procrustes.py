@@ -135,23 +135,31 @@ def _umeyama_svd(src, dst, w, with_scale):
     u, sv, vt = np.linalg.svd((d0 * w[:, None]).T @ s0)
     fix = np.diag([1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
     rot = u @ fix @ vt
-    scale = float(np.trace(np.diag(sv) @ fix) / np.sum(w * np.sum(s0 * s0, axis=1))) if with_scale else 1.0
+    var = np.sum(w * np.sum(s0 * s0, axis=1))
+    scale = float(np.trace(np.diag(sv) @ fix) / var) if with_scale else 1.0
     return np.arctan2(rot[1, 0], rot[0, 0]), mu_d - scale * rot @ mu_s, scale
 
 
 @settings(max_examples=100, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), k=st.integers(2, 30), with_scale=st.booleans(), mirrored=st.booleans())
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    k=st.integers(2, 30),
+    with_scale=st.booleans(),
+    mirrored=st.booleans(),
+)
 def test_closed_form_fit_equals_the_svd_fit(seed, k, with_scale, mirrored):
     rng = np.random.default_rng(seed)
     src = rng.uniform(-10, 10, (k, 2))
-    dst = src @ rotation_2d(rng.uniform(-np.pi, np.pi)).T * rng.uniform(0.5, 2) + rng.normal(0, 1.0, (k, 2))
+    rot = rotation_2d(rng.uniform(-np.pi, np.pi))
+    dst = src @ rot.T * rng.uniform(0.5, 2) + rng.normal(0, 1.0, (k, 2))
     if mirrored:  # the best proper rotation of a mirror image
         dst[:, 0] *= -1
     w = rng.uniform(0.1, 1.0, k)
     theta, t, scale = _umeyama_svd(src, dst, w, with_scale)
     got = umeyama_2d(src, dst, w, with_scale=with_scale)
     # equal as transforms (the angle is ill-defined when the cross-covariance vanishes)
-    np.testing.assert_allclose(got.apply(src), Similarity2D(theta, t, scale).apply(src), atol=1e-6 * (1 + np.abs(dst).max()))
+    ref = Similarity2D(theta, t, scale).apply(src)
+    np.testing.assert_allclose(got.apply(src), ref, atol=1e-6 * (1 + np.abs(dst).max()))
 
 
 def test_poisson_binomial_tail_is_exact_and_below_the_mean_binomial():
