@@ -9,20 +9,26 @@ Triangles found from several anchors are kept once.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from itertools import combinations
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["knn_triangles", "neighbour_rank"]
+__all__ = ["knn_triangles", "map_chunks", "neighbour_rank"]
+
+T = TypeVar("T")
 
 
 def knn_triangles(
-    xy_m: np.ndarray, k: int, *, tree: cKDTree | None = None, chunk: int = 200_000, workers: int = 1
+    xy_m: np.ndarray, k: int, *, tree: cKDTree | None = None, chunk: int = 100_000, workers: int = 1
 ) -> np.ndarray:
     """Unique triangles (T, 3) int32 (vertex ids ascending) over points ``xy_m`` (N, 2): every
     anchor with each pair of its ``k`` nearest neighbours. Rows are sorted by (v0, v1, v2).
-    ``workers``: threads for the KD-tree queries (-1: all cores)."""
+    ``workers``: threads over the chunks (-1: all cores); the result does not depend on it."""
     n = int(xy_m.shape[0])
     if n < 3:
         return np.empty((0, 3), np.int32)
@@ -33,12 +39,12 @@ def knn_triangles(
         return np.empty((0, 3), np.int32)
     tree = tree if tree is not None else cKDTree(xy_m)
     pairs = np.array(list(combinations(range(1, k + 1), 2)), dtype=np.int64)  # columns of knn
-    codes = []
     # anchors in the tree's leaf order: neighbouring queries touch the same nodes (cache locality)
     leaf_order = tree.indices.astype(np.int32)
-    for start in range(0, n, chunk):
+
+    def codes_of(start: int) -> np.ndarray:
         anchor = leaf_order[start : start + chunk]
-        _, nn = tree.query(xy_m[anchor], k=k + 1, workers=workers)
+        _, nn = tree.query(xy_m[anchor], k=k + 1)
         nn = nn.astype(np.int32)  # int32 ids: half the memory traffic of the network below
         # nn[:, 0] is normally the anchor itself, unless duplicates share a position
         a = np.repeat(anchor, len(pairs))
@@ -52,7 +58,9 @@ def knn_triangles(
         code = a.astype(np.int64) << 42
         code |= b.astype(np.int64) << 21
         code |= c
-        codes.append(code)
+        return code
+
+    codes = map_chunks(codes_of, range(0, n, chunk), workers)
     code = np.concatenate(codes)
     code.sort()
     if code.size:  # unique via sort + diff (np.unique is several times slower here)
@@ -67,6 +75,17 @@ def knn_triangles(
     if bad.any():
         out = out[~bad]
     return out
+
+
+def map_chunks(fn: Callable[[int], T], starts: Iterable[int], workers: int) -> list[T]:
+    """``[fn(s) for s in starts]``, on ``workers`` threads (-1: all cores; 1: in this thread).
+    The KD-tree queries and the large numpy operations of a chunk release the GIL."""
+    starts = list(starts)
+    n = (os.cpu_count() or 1) if workers == -1 else max(1, workers)
+    if n == 1 or len(starts) < 2:
+        return [fn(s) for s in starts]
+    with ThreadPoolExecutor(max_workers=min(n, len(starts))) as pool:
+        return list(pool.map(fn, starts))
 
 
 def neighbour_rank(xy_m: np.ndarray, tri: np.ndarray, k: int) -> np.ndarray:

@@ -133,3 +133,14 @@ def test_wider_pass_adds_exactly_the_candidates_the_tight_pass_left_out():
     # tight pass rejected; all others are in exactly one of the two passes
     assert key(tight) | key(shell) <= key(wide)
     assert len(key(wide) - key(tight) - key(shell)) <= 0.02 * len(wide)
+
+
+def test_threaded_build_gives_the_same_index():
+    from reloc.catalog import CatalogConfig
+
+    rng = np.random.default_rng(6)
+    xy, size = rng.uniform(0, 60, (2000, 2)), rng.lognormal(np.log(0.3), 0.5, 2000)
+    assert np.array_equal(knn_triangles(xy, 6, chunk=300, workers=-1), knn_triangles(xy, 6, chunk=300))
+    a = Catalog(xy, size, CatalogConfig(workers=1))
+    b = Catalog(xy, size, CatalogConfig(workers=-1))
+    assert np.array_equal(a.hash.keys, b.hash.keys) and np.array_equal(a.tri_vertices, b.tri_vertices)
