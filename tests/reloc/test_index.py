@@ -140,7 +140,9 @@ def test_threaded_build_gives_the_same_index():
 
     rng = np.random.default_rng(6)
     xy, size = rng.uniform(0, 60, (2000, 2)), rng.lognormal(np.log(0.3), 0.5, 2000)
-    assert np.array_equal(knn_triangles(xy, 6, chunk=300, workers=-1), knn_triangles(xy, 6, chunk=300))
+    threaded = knn_triangles(xy, 6, chunk=300, workers=-1)
+    assert np.array_equal(threaded, knn_triangles(xy, 6, chunk=300))
     a = Catalog(xy, size, CatalogConfig(workers=1))
     b = Catalog(xy, size, CatalogConfig(workers=-1))
-    assert np.array_equal(a.hash.keys, b.hash.keys) and np.array_equal(a.tri_vertices, b.tri_vertices)
+    assert np.array_equal(a.hash.keys, b.hash.keys)
+    assert np.array_equal(a.tri_vertices, b.tri_vertices)
