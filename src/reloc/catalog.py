@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from reloc.descriptors import label_triangles
 from reloc.errors import RelocError
 from reloc.hashing import TriangleHash
-from reloc.sampling import knn_triangles
+from reloc.sampling import knn_triangles, map_chunks
 
 __all__ = ["Catalog", "CatalogConfig", "CatalogError"]
 
@@ -34,7 +34,8 @@ class CatalogConfig:
     """Index parameters. ``neighbours``: k of the k-nearest pairs per anchor rock;
     ``bin_m``: hash bin width on each side length; ``min_side_m``/``min_shape``: degeneracy
     limits (near-duplicate rocks / near-collinear triangles, normalised area in [0, 1]);
-    ``workers``: threads for the build's KD-tree queries (-1: all cores; the index is the same)."""
+    ``workers``: threads for the build's KD-tree queries and labelling (-1: all cores; the index
+    is the same)."""
 
     neighbours: int = 6
     bin_m: float = 0.08
@@ -108,20 +109,25 @@ class Catalog:
         self, tri: np.ndarray, chunk: int = 1_000_000
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Label triangles in chunks (bounded temporaries); keep the non-degenerate ones compactly."""
-        sides, verts, hand = [], [], []
         # float32 positions relative to the catalog's corner: mm precision over tens of km,
         # half the memory traffic of the gathers
         xy32 = (self.xy - self.xy.min(axis=0)).astype(np.float32)
-        for start in range(0, tri.shape[0], chunk):
+
+        def label(start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             lab = label_triangles(
                 xy32,
                 tri[start : start + chunk],
                 min_side_m=self.config.min_side_m,
                 min_shape=self.config.min_shape,
             )
-            sides.append(lab.sides_m[lab.keep].astype(np.float32, copy=False))
-            verts.append(lab.vertices[lab.keep].astype(np.int32, copy=False))
-            hand.append(lab.handedness[lab.keep])
+            return (
+                lab.sides_m[lab.keep].astype(np.float32, copy=False),
+                lab.vertices[lab.keep].astype(np.int32, copy=False),
+                lab.handedness[lab.keep],
+            )
+
+        parts = map_chunks(label, range(0, tri.shape[0], chunk), self.config.workers)
+        sides, verts, hand = ([p[i] for p in parts] for i in range(3))
         if not sides:
             return np.empty((0, 3), np.float32), np.empty((0, 3), np.int32), np.empty(0, np.int8)
         return np.concatenate(sides), np.concatenate(verts), np.concatenate(hand)

@@ -51,32 +51,54 @@ class TriangleInvariants:
     handedness: np.ndarray
 
 
+# (s0 > s1, s0 > s2, s1 > s2) -> the vertex order that sorts the sides ascending (ties keep the
+# earlier vertex first), and whether that order is an odd permutation (it flips the orientation)
+_ORDER = np.zeros((8, 3), np.int64)
+_ODD = np.zeros(8, bool)
+for _code in range(8):
+    _gt = {(0, 1): bool(_code & 4), (0, 2): bool(_code & 2), (1, 2): bool(_code & 1)}
+    # rank of side i: how many sides it exceeds (ties: the later one is the larger)
+    _rank = [
+        sum(_gt[(i, j)] if i < j else not _gt[(j, i)] for j in range(3) if j != i) for i in range(3)
+    ]
+    if sorted(_rank) == [0, 1, 2]:  # two of the eight codes are cyclic and cannot occur
+        _ORDER[_code] = np.argsort(_rank)
+        _ODD[_code] = np.linalg.det(np.eye(3)[_ORDER[_code]]) < 0
+del _code, _gt, _rank
+
+
 def label_triangles(
     xy_m: np.ndarray, tri: np.ndarray, *, min_side_m: float = 0.0, min_shape: float = 0.0
 ) -> LabelledTriangles:
-    """Label triangles ``tri`` (T, 3) of points ``xy_m`` (N, 2) canonically; see module doc."""
+    """Label triangles ``tri`` (T, 3) of points ``xy_m`` (N, 2) canonically; see module doc.
+
+    Works on squared sides (same order, no square root until the end) and picks the sorting
+    permutation from a table of the three side comparisons, in the dtype of ``xy_m``."""
     tri = np.asarray(tri)
-    p0, p1, p2 = xy_m[tri[:, 0]], xy_m[tri[:, 1]], xy_m[tri[:, 2]]
+    p0, p1, p2 = (np.take(xy_m, tri[:, i], axis=0) for i in range(3))
     d21, d02, d10 = p2 - p1, p0 - p2, p1 - p0
-    # side i is the one opposite vertex i
-    s = [np.hypot(d21[:, 0], d21[:, 1]), np.hypot(d02[:, 0], d02[:, 1]), np.hypot(d10[:, 0], d10[:, 1])]
-    cross = d10[:, 0] * (-d02[:, 1]) - d10[:, 1] * (-d02[:, 0])  # (p1 - p0) x (p2 - p0)
-    v = [tri[:, 0], tri[:, 1], tri[:, 2]]
-    odd = np.zeros(tri.shape[0], bool)
-    # three-element sorting network; each swap flips the orientation of the vertex order
-    for i, j in ((0, 1), (1, 2), (0, 1)):
-        swap = s[j] < s[i]
-        s[i], s[j] = np.minimum(s[i], s[j]), np.maximum(s[i], s[j])
-        v[i], v[j] = np.where(swap, v[j], v[i]), np.where(swap, v[i], v[j])
-        odd ^= swap
-    sides = np.stack(s, axis=1)
-    vertices = np.stack(v, axis=1)
-    handedness = np.where((cross >= 0.0) ^ odd, 1, -1).astype(np.int8)
-    sumsq = s[0] * s[0] + s[1] * s[1] + s[2] * s[2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        norm_area = np.where(sumsq > 0.0, _SQRT3_4 * 0.5 * np.abs(cross) / sumsq, 0.0)
-    keep = (s[0] >= min_side_m) & (norm_area >= min_shape) & (s[0] > 0.0)
-    return LabelledTriangles(vertices, sides, handedness, keep)
+    del p0, p1, p2
+    # squared side i is the one opposite vertex i
+    q = np.empty((tri.shape[0], 3), d21.dtype)
+    for i, d in enumerate((d21, d02, d10)):
+        np.multiply(d[:, 0], d[:, 0], out=q[:, i])
+        q[:, i] += d[:, 1] * d[:, 1]
+    cross = d10[:, 1] * d02[:, 0] - d10[:, 0] * d02[:, 1]  # (p1 - p0) x (p2 - p0)
+    del d21, d02, d10
+    code = (q[:, 0] > q[:, 1]).astype(np.int8) * 4
+    code += (q[:, 0] > q[:, 2]).astype(np.int8) * 2
+    code += q[:, 1] > q[:, 2]
+    order = _ORDER[code]
+    vertices = np.take_along_axis(tri, order, axis=1)
+    q = np.take_along_axis(q, order, axis=1)
+    del order
+    handedness = np.where((cross >= 0.0) ^ _ODD[code], 1, -1).astype(np.int8)
+    sumsq = q.sum(axis=1)
+    area2 = np.abs(cross)  # twice the area
+    # normalised area 4 sqrt(3) A / sum(s^2) >= min_shape, without the division
+    keep = (q[:, 0] >= min_side_m * min_side_m) & (q[:, 0] > 0.0)
+    keep &= _SQRT3_4 * 0.5 * area2 >= min_shape * sumsq
+    return LabelledTriangles(vertices, np.sqrt(q), handedness, keep)
 
 
 def triangle_invariants(p_xy: np.ndarray) -> TriangleInvariants:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["TriangleHash"]
+__all__ = ["TriangleHash", "expand_runs"]
 
 _B = np.int64(1 << 14)  # bins per side: sides up to 16384 * bin_m
 _B_SMALL = np.int64(1 << 10)  # int32 keys: 1 + 3 * 10 bits
@@ -28,6 +28,7 @@ class TriangleHash:
         self.bin_m = float(bin_m)
         self.bins = np.int64(bins)
         self.keys = sorted_keys
+        self._sat: tuple[np.ndarray, float] | None = None
 
     @classmethod
     def build(
@@ -42,7 +43,12 @@ class TriangleHash:
         table = cls(np.empty(0, np.int64), bin_m, _B_SMALL if (q.size == 0 or q.max() < _B_SMALL) else _B)
         keys = table._keys(q, handedness)
         del q
-        order = np.argsort(keys)  # deterministic for equal input
+        if keys.dtype == np.int32 and keys.size < (1 << 32):
+            # one sort of (key, row) packed in int64: faster than an argsort and a gather
+            packed = np.sort((keys.astype(np.int64) << 32) | np.arange(keys.size, dtype=np.int64))
+            table.keys = (packed >> 32).astype(np.int32)
+            return table, packed & np.int64(0xFFFFFFFF)
+        order = np.argsort(keys, kind="stable")
         table.keys = keys[order]
         return table, order
 
@@ -61,7 +67,7 @@ class TriangleHash:
     def __len__(self) -> int:
         return int(self.keys.size)
 
-    def _runs(
+    def runs(
         self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Runs of the sorted keys touched by each query: (query index, start, count) per run."""
@@ -90,7 +96,7 @@ class TriangleHash:
 
     def count(self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray) -> np.ndarray:
         """Number of triangles (Q,) in the bins :meth:`query` would return for each query."""
-        qidx, _, counts = self._runs(sides_m, handedness, tol_m)
+        qidx, _, counts = self.runs(sides_m, handedness, tol_m)
         n_q = np.asarray(sides_m).reshape(-1, 3).shape[0]
         return np.bincount(qidx, weights=counts, minlength=n_q).astype(np.int64)
 
@@ -102,12 +108,54 @@ class TriangleHash:
         Returns ``(query_index, triangle_id)`` pairs (unfiltered by the exact tolerance; the caller
         compares sides, which it holds in float32 anyway).
         """
-        qidx, starts, counts = self._runs(sides_m, handedness, tol_m)
-        total = int(counts.sum())
-        if total == 0:
-            return np.empty(0, np.int64), np.empty(0, np.int64)
-        rep_q = np.repeat(qidx, counts)
-        # positions start..start+count-1 for every run, without a Python loop
-        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-        pos = np.repeat(starts, counts) + offsets
-        return rep_q, pos
+        return expand_runs(*self.runs(sides_m, handedness, tol_m))
+
+    def estimate_count(
+        self, sides_m: np.ndarray, handedness: np.ndarray, tol_m: float | np.ndarray
+    ) -> np.ndarray:
+        """Approximate :meth:`count` (Q,) float from a coarse 3D histogram of the keys (cells of
+        ``coarse_bins`` hash bins, summed-area table built on first use): O(1) per query, for
+        ranking queries by how common their shape is."""
+        if self._sat is None:
+            self._sat = self._summed_area()
+        sat, cell = self._sat
+        sides_m = np.asarray(sides_m, dtype=float).reshape(-1, 3)
+        tol = np.broadcast_to(np.asarray(tol_m, dtype=float), (sides_m.shape[0],))[:, None]
+        top = sat.shape[1] - 1
+        lo = np.clip(np.floor((sides_m - tol) / cell).astype(np.int64), 0, top)
+        hi = np.clip(np.floor((sides_m + tol) / cell).astype(np.int64) + 1, 0, top)
+        h = (np.asarray(handedness) > 0).astype(np.int64)
+        total = np.zeros(sides_m.shape[0])
+        for corner in range(8):  # inclusion-exclusion over the box corners
+            pick = [(hi if corner >> d & 1 else lo)[:, d] for d in range(3)]
+            sign = (-1.0) ** (3 - corner.bit_count())
+            total += sign * sat[h, pick[0], pick[1], pick[2]]
+        # the box holds whole cells: scale by the fraction of its volume the query covers
+        frac = np.prod(np.minimum(1.0, 2.0 * tol / np.maximum((hi - lo) * cell, 1e-12)), axis=1)
+        return np.maximum(total, 0.0) * frac
+
+    def _summed_area(self, coarse_bins: int = 4, max_cells: int = 64) -> tuple[np.ndarray, float]:
+        b = int(self.bins)
+        keys = self.keys.astype(np.int64)
+        q = np.stack([keys // (b * b) % b, keys // b % b, keys % b], axis=1) // coarse_bins
+        hand = keys // (b * b * b)
+        q = np.minimum(q, max_cells - 1)
+        hist = np.zeros((2, max_cells, max_cells, max_cells), np.int64)
+        np.add.at(hist, (hand, q[:, 0], q[:, 1], q[:, 2]), 1)
+        sat = np.zeros((2, max_cells + 1, max_cells + 1, max_cells + 1), np.int64)
+        sat[:, 1:, 1:, 1:] = hist.cumsum(1).cumsum(2).cumsum(3)
+        return sat, coarse_bins * self.bin_m
+
+
+def expand_runs(
+    qidx: np.ndarray, starts: np.ndarray, counts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(query index, position) of every key in the runs of :meth:`TriangleHash.runs`."""
+    total = int(counts.sum())
+    if total == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    rep_q = np.repeat(qidx, counts)
+    # positions start..start+count-1 for every run, without a Python loop
+    offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+    pos = np.repeat(starts, counts) + offsets
+    return rep_q, pos

@@ -16,6 +16,7 @@ from itertools import permutations
 import numpy as np
 
 from reloc.catalog import Catalog
+from reloc.hashing import expand_runs
 from reloc.procrustes import similarity_batch
 
 __all__ = ["Hypotheses", "LocalTriangles", "generate_hypotheses", "pose_bins"]
@@ -84,13 +85,23 @@ def generate_hypotheses(
     side_tol_m: float,
     scale_tol: float,
     size_log_tol: float | None,
+    inner_tol_m: float | None = None,
     chunk_candidates: int = 1 << 21,
 ) -> Hypotheses:
     """Candidate poses for local triangles ``tri`` against ``catalog``; see module doc.
-    Hash candidates are processed in chunks of about ``chunk_candidates`` (bounded memory)."""
+    ``inner_tol_m``: leave out the candidates a call with ``side_tol_m=inner_tol_m`` returns
+    (a wider second pass then adds only new hypotheses). Hash candidates are processed in chunks
+    of about ``chunk_candidates`` (bounded memory)."""
     tol = side_tol_m + scale_tol * tri.sides_m[:, 2]
     var, var_sides, src = relabel_variants(tri, tol)
     var_tol = tol[src]
+    var_inner = None
+    if inner_tol_m is not None:
+        inner = inner_tol_m + scale_tol * tri.sides_m[:, 2]
+        # a variant that the inner pass did not query keeps all its candidates
+        s_, t_ = var_sides, 2.0 * inner[src]
+        queried = (s_[:, 0] <= s_[:, 1] + t_) & (s_[:, 1] <= s_[:, 2] + t_)
+        var_inner = np.where(queried, inner[src], -1.0)
     if len(var) == 0:
         return _empty()
     sized = size_log_tol is not None and local_log_size is not None
@@ -101,16 +112,14 @@ def generate_hypotheses(
         tol_q = size_log_tol / catalog.size_q_step
         size_lo = np.clip(np.floor(loc_q - tol_q) - 1, 0, 255).astype(np.uint8)[var.vertices]
         size_hi = np.clip(np.ceil(loc_q + tol_q) + 1, 0, 255).astype(np.uint8)[var.vertices]
-    n_raw = catalog.hash.count(var.sides_m, var.handedness, var_tol)
-    bounds = np.searchsorted(np.cumsum(n_raw), np.arange(chunk_candidates, int(n_raw.sum()), chunk_candidates))
+    run_q, run_start, run_n = catalog.hash.runs(var.sides_m, var.handedness, var_tol)
+    cuts = np.arange(chunk_candidates, int(run_n.sum()), chunk_candidates)
+    bounds = np.searchsorted(np.cumsum(run_n), cuts)
     parts = []
-    for sl in np.split(np.arange(len(var)), np.unique(bounds)):
-        if sl.size == 0:
-            continue
-        qi, pos = catalog.hash.query(var.sides_m[sl], var.handedness[sl], var_tol[sl])
+    for sl in np.split(np.arange(run_n.size), np.unique(bounds)):
+        qi, pos = expand_runs(run_q[sl], run_start[sl], run_n[sl])
         if qi.size == 0:
             continue
-        qi = sl[qi]
         if sized:
             cq = np.take(catalog.tri_size_q, pos, axis=0)
             lo, hi = np.take(size_lo, qi, axis=0), np.take(size_hi, qi, axis=0)
@@ -123,6 +132,9 @@ def generate_hypotheses(
         vt = np.take(var_tol, qi)
         d = np.abs(cat_sides - ref)
         ok = (d[:, 0] <= vt) & (d[:, 1] <= vt) & (d[:, 2] <= vt)
+        if var_inner is not None:
+            it = np.take(var_inner, qi)
+            ok &= ~((d[:, 0] <= it) & (d[:, 1] <= it) & (d[:, 2] <= it))
         parts.append((qi[ok], pos[ok]))
     if not parts:
         return _empty()

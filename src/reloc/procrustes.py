@@ -1,14 +1,16 @@
 """2D similarity transforms by Procrustes (Umeyama 1991), proper rotations only.
 
 ``dst ~= scale * R(theta) @ src + t``. :func:`umeyama_2d` fits one transform to K >= 2 point pairs
-(optionally weighted) via the SVD of the cross-covariance with the reflection correction, so
-det R = +1 always: a mirrored constellation gets a poor fit instead of a mirrored transform.
+(optionally weighted): the SVD of the cross-covariance with the reflection correction, which in
+2D has a closed form, so det R = +1 always: a mirrored constellation gets a poor fit instead of
+a mirrored transform.
 :func:`similarity_batch` is the closed form of the same fit for H small correspondence sets at once
 (in 2D the optimal rotation angle is ``atan2(sum p x q, sum p . q)`` on centred points).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +39,12 @@ class Similarity2D:
 
     def apply(self, xy: np.ndarray) -> np.ndarray:
         """Map points (N, 2) from the source to the destination frame."""
-        return self.scale * np.asarray(xy, float) @ self.rotation.T + self.translation
+        xy = np.asarray(xy, float)
+        c, s = self.scale * math.cos(self.theta_rad), self.scale * math.sin(self.theta_rad)
+        out = np.empty(xy.shape)
+        out[..., 0] = c * xy[..., 0] - s * xy[..., 1] + self.translation[0]
+        out[..., 1] = s * xy[..., 0] + c * xy[..., 1] + self.translation[1]
+        return out
 
 
 def umeyama_2d(
@@ -48,20 +55,21 @@ def umeyama_2d(
     dst = np.asarray(dst, float)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2 or src.shape[0] < 2:
         raise ValueError(f"umeyama_2d needs two (K>=2, 2) arrays of equal shape, got {src.shape}, {dst.shape}")
-    w = np.ones(src.shape[0]) if weights is None else np.asarray(weights, float)
-    w = w / w.sum()
+    n = src.shape[0]
+    w = np.full(n, 1.0 / n) if weights is None else np.asarray(weights, float) / np.sum(weights)
     mu_s = w @ src
     mu_d = w @ dst
-    s0 = src - mu_s
-    d0 = dst - mu_d
-    cov = (d0 * w[:, None]).T @ s0  # (2, 2) cross-covariance dst x src
-    u, sv, vt = np.linalg.svd(cov)
-    fix = np.diag([1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
-    rot = u @ fix @ vt
-    var_s = float(np.sum(w * np.sum(s0 * s0, axis=1)))
-    scale = float(np.trace(np.diag(sv) @ fix) / var_s) if (with_scale and var_s > 0) else 1.0
-    theta = float(np.arctan2(rot[1, 0], rot[0, 0]))
-    t = mu_d - scale * rot @ mu_s
+    p = src - mu_s
+    q = dst - mu_d
+    # in 2D the SVD solution with the reflection fix is the closed form: the proper rotation
+    # maximising sum w (q . R p) has angle atan2(sum w p x q, sum w p . q)
+    dot = float(w @ (p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1]))
+    crs = float(w @ (p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]))
+    theta = math.atan2(crs, dot)
+    var_s = float(w @ (p[:, 0] * p[:, 0] + p[:, 1] * p[:, 1]))
+    scale = math.hypot(dot, crs) / var_s if (with_scale and var_s > 0) else 1.0
+    c, s = math.cos(theta), math.sin(theta)
+    t = mu_d - scale * np.array([c * mu_s[0] - s * mu_s[1], s * mu_s[0] + c * mu_s[1]])
     return Similarity2D(theta, t, scale)
 
 

@@ -51,19 +51,34 @@ def score_points(
     world_xy: np.ndarray,
     radius_m: float,
     size_check: tuple[np.ndarray, np.ndarray, float] | None = None,
+    *,
+    k: int = 4,
 ) -> Inliers:
     """Inliers of transformed local points ``world_xy`` (M, 2) against the catalog ``tree``.
 
     ``size_check = (local_log_size (M,), catalog_log_size (N,), log_tol)``: a pair also needs
-    ``|log size ratio| <= log_tol`` to count (a random pair rarely agrees in size as well).
+    ``|log size ratio| <= log_tol`` to count (a random pair rarely agrees in size as well). Each
+    local point pairs with the nearest size-compatible catalog rock among its ``k`` nearest within
+    the radius (in a cluster the nearest rock is often another one), which is the event the chance
+    model of :meth:`~reloc.matcher.ConstellationMatcher` counts: "some compatible rock within r".
     """
-    dist, idx = tree.query(world_xy, k=1, distance_upper_bound=radius_m)
-    if size_check is not None:
-        loc_ls, cat_ls, tol = size_check
-        hit = np.flatnonzero(dist <= radius_m)
-        bad = hit[np.abs(loc_ls[hit] - cat_ls[idx[hit]]) > tol]
-        dist[bad] = np.inf
-    return one_to_one(dist, idx, radius_m)
+    if size_check is None or k <= 1:
+        dist, idx = tree.query(world_xy, k=1, distance_upper_bound=radius_m)
+        if size_check is not None:
+            loc_ls, cat_ls, tol = size_check
+            hit = np.flatnonzero(dist <= radius_m)
+            dist[hit[np.abs(loc_ls[hit] - cat_ls[idx[hit]]) > tol]] = np.inf
+        return one_to_one(dist, idx, radius_m)
+    loc_ls, cat_ls, tol = size_check
+    dist, idx = tree.query(world_xy, k=k, distance_upper_bound=radius_m)
+    near = dist <= radius_m
+    rows, cols = np.nonzero(near)
+    bad = np.abs(loc_ls[rows] - cat_ls[idx[rows, cols]]) > tol
+    dist[rows[bad], cols[bad]] = np.inf
+    # columns are sorted by distance: the first finite one is the nearest compatible rock
+    first = np.argmin(~np.isfinite(dist), axis=1)
+    m = np.arange(dist.shape[0])
+    return one_to_one(dist[m, first], idx[m, first], radius_m)
 
 
 def one_to_one(dist: np.ndarray, idx: np.ndarray, radius_m: float) -> Inliers:
@@ -74,6 +89,8 @@ def one_to_one(dist: np.ndarray, idx: np.ndarray, radius_m: float) -> Inliers:
         return Inliers(empty, empty, np.empty(0))
     d = dist[local]
     cat = idx[local]
+    if np.unique(cat).size == cat.size:  # no catalog rock claimed twice (the usual case)
+        return Inliers(local, cat.astype(np.int64), d)
     order = np.lexsort((d, cat))
     first = np.ones(order.size, bool)
     first[1:] = cat[order][1:] != cat[order][:-1]

@@ -187,3 +187,79 @@ def test_catalog_index_is_compact(catalog):
     assert catalog.n_triangles > 5 * len(catalog)
     assert catalog.nbytes < 64 * catalog.n_triangles
     assert dataclasses.is_dataclass(catalog.config)
+
+
+def test_false_alarm_bound_pays_for_hypotheses_and_verifications(catalog):
+    from reloc.scoring import log10_binomial_tail
+
+    rng = np.random.default_rng(15)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.1))
+    for _ in range(4):
+        local, size, *_ = _query(catalog.xy, catalog.size, rng, sigma=0.1)
+        res = matcher.match(local, size)
+        assert res is not None
+        m = local.shape[0]
+        tail = log10_binomial_tail(res.n_inliers - 3, m - 3, res.chance_probability)
+        # every generated hypothesis and every verification (at least one pose each) is a test,
+        # and a stage weight is at most 1
+        assert res.log10_false_alarm >= tail + np.log10(res.n_hypotheses + res.n_verified) - 1e-9
+
+
+def test_returned_pose_is_settled_on_its_inliers(catalog):
+    from reloc.procrustes import umeyama_2d
+    from reloc.scoring import score_points
+
+    rng = np.random.default_rng(16)
+    cfg = MatcherConfig(sigma_m=0.2)
+    matcher = ConstellationMatcher(catalog, cfg)
+    for _ in range(4):
+        local, size, *_ = _query(catalog.xy, catalog.size, rng, sigma=0.2)
+        res = matcher.match(local, size)
+        if res is None:
+            continue
+        li, ci = res.inlier_pairs.T
+        refit = umeyama_2d(local[li], catalog.xy[ci], with_scale=False)
+        chk = (np.log(size).astype(np.float32), catalog.log_size, np.log(cfg.size_ratio_max))
+        again = score_points(catalog.tree, refit.apply(local), cfg.inlier_radius_m, chk)
+        assert (again.count, -again.rmse_m) <= (res.n_inliers, -res.rmse_m + 1e-12)
+
+
+def test_triangle_order_is_a_seeded_permutation_of_distinctive_triangles_first(catalog):
+    rng = np.random.default_rng(17)
+    local, size, *_ = _query(catalog.xy, catalog.size, rng)
+    ls = np.log(size).astype(np.float32)
+    plain = ConstellationMatcher(catalog, MatcherConfig(seed=4, fewest_candidates_first=False))
+    ranked = ConstellationMatcher(catalog, MatcherConfig(seed=4))
+    tri = ranked._local_triangles(local)
+    a, b = plain._triangle_order(local, tri, ls), ranked._triangle_order(local, tri, ls)
+    assert np.array_equal(a, np.random.default_rng(4).permutation(len(tri)))
+    assert np.array_equal(np.sort(b), np.arange(len(tri)))
+    # the first triangles have fewer catalog look-alikes than the last ones
+    cfg = ranked.config
+    tol = cfg.side_tol_m + cfg.scale_tol * tri.sides_m[:, 2]
+    n = catalog.hash.count(tri.sides_m, tri.handedness, tol)
+    q = len(tri) // 4
+    assert np.mean(n[b[:q]]) < np.mean(n[b[-q:]])
+
+
+def test_wider_second_pass_is_optional_and_only_adds_hypotheses(catalog):
+    rng = np.random.default_rng(18)
+    other_xy, other_size = _field(3000, 98)
+    local, size, *_ = _query(other_xy, other_size, rng)  # not in the catalog: the search runs out
+    one = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05, wide_side_tol_sigmas=None))
+    two = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05, wide_max_hypotheses=10**9))
+    assert one.match(local, size) is None and two.match(local, size) is None
+    local, size, theta, t, _ = _query(catalog.xy, catalog.size, rng)
+    res = one.match(local, size)
+    assert res is not None
+    _check(res, local, theta, t)
+
+
+def test_stage_weights_sum_to_at_most_one():
+    from reloc.matcher import _stage_weights
+
+    for passes in ([1], [5], [3, 4], [1, 1], [6, 2]):
+        w = _stage_weights(passes)
+        assert len(w) == sum(passes) and all(x > 0 for x in w) and sum(w) <= 1.0 + 1e-12
+    w = _stage_weights([5])
+    assert w[:4] == [0.25, 0.125, 0.0625, 0.03125] and w[-1] >= 0.5  # one pass: as before

@@ -113,6 +113,55 @@ def test_inliers_are_one_to_one():
     assert rotation_2d(0.0).tolist() == [[1.0, 0.0], [0.0, 1.0]]
 
 
+def test_inliers_pair_with_the_nearest_size_compatible_rock():
+    cat = np.array([[0.0, 0.0], [0.3, 0.0], [5.0, 0.0]])
+    cat_ls = np.log(np.array([1.0, 0.3, 0.3]))
+    pts = np.array([[0.1, 0.0], [5.0, 0.1]])
+    loc_ls = np.log(np.array([0.3, 1.0]))
+    inl = score_points(cKDTree(cat), pts, 0.4, (loc_ls, cat_ls, np.log(1.6)))
+    # rock 0 is nearer but three times larger: the local rock pairs with rock 1; the second
+    # local rock has no compatible rock within the radius
+    assert inl.local_idx.tolist() == [0] and inl.catalog_idx.tolist() == [1]
+    assert inl.dist_m[0] == pytest.approx(0.2)
+    # without sizes the nearest rock wins
+    assert score_points(cKDTree(cat), pts, 0.4).catalog_idx.tolist() == [0, 2]
+
+
+def _umeyama_svd(src, dst, w, with_scale):
+    """Reference: the SVD form with the reflection fix (Umeyama 1991)."""
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, w @ dst
+    s0, d0 = src - mu_s, dst - mu_d
+    u, sv, vt = np.linalg.svd((d0 * w[:, None]).T @ s0)
+    fix = np.diag([1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
+    rot = u @ fix @ vt
+    var = np.sum(w * np.sum(s0 * s0, axis=1))
+    scale = float(np.trace(np.diag(sv) @ fix) / var) if with_scale else 1.0
+    return np.arctan2(rot[1, 0], rot[0, 0]), mu_d - scale * rot @ mu_s, scale
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    k=st.integers(2, 30),
+    with_scale=st.booleans(),
+    mirrored=st.booleans(),
+)
+def test_closed_form_fit_equals_the_svd_fit(seed, k, with_scale, mirrored):
+    rng = np.random.default_rng(seed)
+    src = rng.uniform(-10, 10, (k, 2))
+    rot = rotation_2d(rng.uniform(-np.pi, np.pi))
+    dst = src @ rot.T * rng.uniform(0.5, 2) + rng.normal(0, 1.0, (k, 2))
+    if mirrored:  # the best proper rotation of a mirror image
+        dst[:, 0] *= -1
+    w = rng.uniform(0.1, 1.0, k)
+    theta, t, scale = _umeyama_svd(src, dst, w, with_scale)
+    got = umeyama_2d(src, dst, w, with_scale=with_scale)
+    # equal as transforms (the angle is ill-defined when the cross-covariance vanishes)
+    ref = Similarity2D(theta, t, scale).apply(src)
+    np.testing.assert_allclose(got.apply(src), ref, atol=1e-6 * (1 + np.abs(dst).max()))
+
+
 def test_poisson_binomial_tail_is_exact_and_below_the_mean_binomial():
     rng = np.random.default_rng(3)
     for _ in range(20):
