@@ -39,7 +39,8 @@ class RelocalizerError(FgslamError):
 class RelocalizerConfig:
     """When and how the local map is matched, and how a match becomes a fix (defaults in code)."""
 
-    period_s: float = 3.0  # one attempt per period of stream time (goal: fixes >= 0.2 Hz)
+    # one attempt per period of stream time (goal: fixes >= 0.2 Hz; cnes: 0.147 Hz at 3 s, 0.219 at 2 s)
+    period_s: float = 2.0
     min_obs: int = 2  # landmarks seen fewer times are not matched (likely false positives)
     min_landmarks: int = 8  # skip the attempt below this many usable landmarks
     max_landmarks: int = 160  # this many landmarks form the local constellation ...
@@ -90,7 +91,8 @@ class RelocalizerConfig:
         if self.select not in ("largest", "nearest"):
             raise RelocalizerError(f"relocalizer select must be 'largest' or 'nearest', got {self.select!r}")
         if self.correlation not in ("rocks", "window", "none"):
-            raise RelocalizerError(f"relocalizer correlation must be 'rocks', 'window' or 'none', got {self.correlation!r}")
+            raise RelocalizerError(
+                f"relocalizer correlation must be 'rocks', 'window' or 'none', got {self.correlation!r}")
         if not self.crop_snap_m > 0 or self.crop_cache < 1:
             raise RelocalizerError(
                 f"relocalizer crop_snap_m must be > 0 and crop_cache >= 1, got {self.crop_snap_m}, {self.crop_cache}")
