@@ -26,6 +26,9 @@ class MotionNoiseConfig:
     # confident (my2022, 0.08 m/s: inside 3 sigma 71 %, NEES 11.9; with these 100 %, NEES 1.2)
     fwd_per_sqrtm: float = 0.03
     lat_per_sqrtm: float = 0.015  # lateral (vertical: the per-speed terms; z follows the terrain)
+    # slip grows with the slope: the forward sigma per sqrt(m) grows by this per rad of pitch
+    # (added in quadrature), as in the smoother's odometry model
+    fwd_per_sqrtm_per_rad: float = 1.5
     fwd_floor: float = 0.001  # forward (base_link x) noise at rest
     fwd_per_speed: float = 0.03  # ... per m/s of speed (slip, speed error)
     lat_floor: float = 0.001  # lateral (y) noise at rest

@@ -19,7 +19,7 @@ import numpy as np
 
 from ekf.config import MotionNoiseConfig
 from ekf.so3 import exp_so3, log_so3, skew
-from reloc.odometry import OdometryStep
+from reloc.odometry import OdometryStep, pitch_rad
 
 
 def body_rates(step: OdometryStep) -> np.ndarray:
@@ -42,8 +42,8 @@ def process_noise_body(
     s_vert = cfg.vert_floor + cfg.vert_per_speed * speed + extra
     s_rot = cfg.rot_floor + cfg.rot_per_turn * turn + cfg.rot_per_rough * rough
     dist = speed * step.dt
-    var_t = np.array([s_fwd, s_lat, s_vert]) ** 2 * step.dt + dist * np.array(
-        [cfg.fwd_per_sqrtm**2, cfg.lat_per_sqrtm**2, 0.0])
+    fwd_slip2 = cfg.fwd_per_sqrtm**2 + (cfg.fwd_per_sqrtm_per_rad * pitch_rad(step)) ** 2
+    var_t = np.array([s_fwd, s_lat, s_vert]) ** 2 * step.dt + dist * np.array([fwd_slip2, cfg.lat_per_sqrtm**2, 0.0])
     var_r = np.full(3, s_rot**2 * step.dt)
     return var_t, var_r
 

@@ -7,6 +7,8 @@ rotation from the IMU orientation increment, which is far better than the comman
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,3 +116,8 @@ class OdometryAssembler:
             R_ref_base1=R_curr,
             gyro_radps=0.5 * (np.asarray(prev.gyro_radps) + np.asarray(m.gyro_radps)),
         )
+
+
+def pitch_rad(step: OdometryStep) -> float:
+    """|pitch| (rad) of base_link x over the horizontal at the end of ``step`` (IMU gravity reference)."""
+    return math.asin(min(abs(float(step.R_ref_base1[2, 0])), 1.0))

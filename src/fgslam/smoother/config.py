@@ -46,6 +46,10 @@ class OdometryNoiseConfig:
     # 100 % (0.041 m)
     sigma_forward_m_per_sqrtm: float = 0.08
     sigma_lateral_m_per_sqrtm: float = 0.04  # lateral/vertical
+    # slip grows with the slope (wheels on loose soil uphill): forward sigma per sqrt(m) grows by
+    # this per rad of pitch (IMU gravity reference), added in quadrature. cnes seed 3 climbs
+    # 1.5 m in 60 s: a 0.6 m slip burst over 3 m left iSAM2 + reloc 0.6 m off its own map
+    sigma_forward_m_per_sqrtm_per_rad: float = 1.5
     sigma_rot_radpsqrts: float = 0.002  # orientation increment, rad per sqrt(s)
     floor_sigma_m: float = 1e-4  # per step
     floor_sigma_rad: float = 1e-5  # per step

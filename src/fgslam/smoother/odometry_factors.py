@@ -14,7 +14,7 @@ import numpy as np
 
 from fgslam.smoother.config import OdometryNoiseConfig
 from fgslam.smoother.factors import skew
-from reloc.odometry import OdometryStep
+from reloc.odometry import OdometryStep, pitch_rad
 
 
 def step_motion(step: OdometryStep, cfg: OdometryNoiseConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -31,7 +31,9 @@ def step_motion(step: OdometryStep, cfg: OdometryNoiseConfig) -> tuple[np.ndarra
     dT[:3, :3] = dR
     dT[:3, 3] = chord * d_m
     ad = abs(d_m)
-    s_f2 = cfg.sigma_forward_m_per_sqrtm**2 * ad + cfg.floor_sigma_m**2
+    slope = pitch_rad(step)
+    s_f2 = (cfg.sigma_forward_m_per_sqrtm**2 + (cfg.sigma_forward_m_per_sqrtm_per_rad * slope) ** 2) * ad
+    s_f2 += cfg.floor_sigma_m**2
     s_l2 = cfg.sigma_lateral_m_per_sqrtm**2 * ad + cfg.floor_sigma_m**2
     s_r2 = cfg.sigma_rot_radpsqrts**2 * max(step.dt, 0.0) + cfg.floor_sigma_rad**2
     Q = np.diag([s_r2, s_r2, s_r2, s_f2, s_l2, s_l2])
