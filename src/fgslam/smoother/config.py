@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from reloc.association import AssociationConfig
+from reloc.budget import ObservationBudget
 
 
 class Factorization(str, Enum):
@@ -64,6 +65,10 @@ class LandmarkConfig:
     min_frame_interval_s: float = 0.95  # rock frames closer than this to the last used one are skipped
     # (only one observation per landmark and keyframe enters the graph, so more frames add little:
     # 2 Hz -> 1 Hz halved the association cost and lowered the ATE, 0.028 -> 0.021 m on the simulator)
+    # per rock frame: at most max_observations factors of graph landmarks (lowest innovation
+    # covariance first; candidates' observations cost nothing and are all kept) and max_new
+    # candidates entering the graph (best constrained first, the others wait); see reloc.budget
+    budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=25, max_new=0))
     max_retired: int = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
 
 
