@@ -68,7 +68,7 @@ class LandmarkConfig:
     # per rock frame: at most max_observations factors of graph landmarks (lowest innovation
     # covariance first; candidates' observations cost nothing and are all kept) and max_new
     # candidates entering the graph (best constrained first, the others wait); see reloc.budget
-    budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=25, max_new=0))
+    budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=25, max_new=3))
     max_retired: int = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
 
 
