@@ -2,9 +2,9 @@
 
 Candidates (landmarks predicted within range) -> association (:mod:`reloc.association`, joint
 compatibility with the full innovation covariance) -> the per-frame observation budget
-(:mod:`reloc.budget`) -> one stacked Joseph update of the used pairs -> initialisation of new landmarks with their cross covariances -> map hygiene
-(unconfirmed tentative landmarks dropped) and the bound on the landmark count (the stalest
-landmarks marginalised out).
+(:mod:`reloc.budget`) -> one stacked Joseph update of the used pairs -> initialisation of new
+landmarks with their cross covariances -> map hygiene (unconfirmed tentative landmarks dropped)
+and the bound on the landmark count (the stalest landmarks marginalised out).
 """
 
 from __future__ import annotations

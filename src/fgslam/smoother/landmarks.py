@@ -162,11 +162,11 @@ class LandmarkStore:
                     rec.pending.append((kf, z_kf[i], R_kf[i]))
                 if len(rec.pending) >= self.cfg.min_obs_to_insert:
                     to_insert.append(rec)
-        max_new = self.cfg.budget.max_new
-        if 0 < max_new < len(to_insert):  # best-constrained candidates first; the rest wait, pending
+        room = self._insert_room(sum(r.status == ACTIVE for r in cands))
+        if room < len(to_insert):  # best-constrained candidates first; the rest wait, pending
             order = np.argsort([np.trace(r.cov_world_m2) for r in to_insert], kind="stable")
-            self.n_budget_new_skipped += len(to_insert) - max_new
-            to_insert = [to_insert[k] for k in np.sort(order[:max_new])]
+            self.n_budget_new_skipped += len(to_insert) - room
+            to_insert = [to_insert[k] for k in np.sort(order[:room])]
         for i in range(z_base.shape[0]):
             if a.landmark_of[i] < 0 and a.is_new[i]:
                 rec = LandmarkRecord(self.next_id, l_new[i], c_new[i], float(size_m[i]), 1, t, t)
@@ -179,6 +179,15 @@ class LandmarkStore:
         n_new = int(a.is_new.sum())
         return FrameAssociation(observed, to_insert, int(matched.size), n_new,
                                 n_rejected + a.n_ambiguous + a.n_out_of_range + int(skipped.size))
+
+    def _insert_room(self, n_in_view: int) -> int | float:
+        """How many candidates may enter the graph in a frame whose view holds ``n_in_view`` graph
+        landmarks: any number while fewer than ``dense_view`` (a sparse yard is never held back),
+        beyond it at most ``max_new`` per frame (0 = no bound)."""
+        max_new, dense = self.cfg.budget.max_new, self.cfg.dense_view
+        if max_new <= 0 or (dense > 0 and n_in_view < dense):
+            return np.inf
+        return max_new
 
     def _over_budget(self, matched: np.ndarray, recs: list[LandmarkRecord], S_hat: np.ndarray,
                      R_z: np.ndarray, a) -> np.ndarray:
