@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from reloc.association import AssociationConfig
+from reloc.budget import ObservationBudget
 from reloc.errors import ConfigError
 from reloc.landmark_book import LandmarkBookConfig
 
@@ -72,6 +73,11 @@ class EkfConfig:
     association: AssociationConfig = field(default_factory=AssociationConfig)
     book: LandmarkBookConfig = field(default_factory=LandmarkBookConfig)
     fix_gate: FixGateConfig = field(default_factory=FixGateConfig)
+    # per rock frame: at most max_observations associated observations in the update (confirmed
+    # landmarks first, then the lowest innovation covariance) and max_new initialisations
+    # (nearest first); see reloc.budget and docs/ekf.md
+    budget: ObservationBudget = field(
+        default_factory=lambda: ObservationBudget(max_observations=25, max_new=0))
     attitude_sigma_rad: float = 0.01  # roll/pitch pseudo-measurement from the IMU's gravity reference
     attitude_period_s: float = 1.0  # how often it is applied; <= 0 disables it
     landmark_period_s: float = 0.2  # rock frames closer than this to the last used one are skipped

@@ -1,10 +1,10 @@
 """Landmark update of the EKF from one stereo rock frame.
 
 Candidates (landmarks predicted within range) -> association (:mod:`reloc.association`, joint
-compatibility with the full innovation covariance) -> one stacked Joseph update of the
-associated pairs -> initialisation of new landmarks with their cross covariances -> map hygiene
-(unconfirmed tentative landmarks dropped) and the bound on the landmark count (the stalest
-landmarks marginalised out).
+compatibility with the full innovation covariance) -> the per-frame observation budget
+(:mod:`reloc.budget`) -> one stacked Joseph update of the used pairs -> initialisation of new
+landmarks with their cross covariances -> map hygiene (unconfirmed tentative landmarks dropped)
+and the bound on the landmark count (the stalest landmarks marginalised out).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from ekf.state import POSE_DIM, FilterState
 from ekf.updates import block_diag3, joseph_update
 from reloc.association import associate
 from reloc.backend import LandmarkUpdateReport
+from reloc.budget import innovation_trace, select_observations
 from reloc.landmark_model import init_jacobians, point_in_base, point_jacobians, point_to_world
 from reloc.measurements import RockObservations
 
@@ -36,7 +37,8 @@ class LandmarkUpdater:
     def __init__(self, config: EkfConfig) -> None:
         self.config = config
         self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
-                       "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0}
+                       "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0,
+                       "n_budget_skipped": 0, "n_budget_new_skipped": 0}
 
     def _bump(self, count: bool, **kw: int) -> None:
         if count:
@@ -73,12 +75,20 @@ class LandmarkUpdater:
         det, ci = assoc.pairs
         rows = cand[ci]
         if det.size:
-            idx = np.concatenate([np.arange(POSE_DIM), s.landmark_cols(rows)])
-            Hc = stacked_jacobian(H_pose[ci], H_l)
-            nu = (z[det] - zhat[ci]).reshape(-1)
-            s.P, res = joseph_update(s.P, idx, Hc, nu, block_diag3(Rz[det]))
-            s.inject(res.dx)
+            # every associated landmark counts as seen (confirmation, staleness); only the budget's
+            # share enters the update
             s.book.observe(rows, obs.t, size[det])
+            use = select_observations(s.book.confirmed[rows], innovation_trace(S_hat[ci], Rz[det]),
+                                      cfg.budget.max_observations)
+            u_det, u_ci = det[use], ci[use]
+            idx = np.concatenate([np.arange(POSE_DIM), s.landmark_cols(cand[u_ci])])
+            Hc = stacked_jacobian(H_pose[u_ci], H_l)
+            nu = (z[u_det] - zhat[u_ci]).reshape(-1)
+            s.P, res = joseph_update(s.P, idx, Hc, nu, block_diag3(Rz[u_det]))
+            s.inject(res.dx)
+            n_used = int(use.size)
+        else:
+            n_used = 0
 
         # hygiene and the bound first, so the state never exceeds max_landmarks
         new = np.flatnonzero(assoc.is_new)
@@ -90,6 +100,9 @@ class LandmarkUpdater:
         evict = s.book.evictions(excess, dist, protect)
         s.keep_landmarks(~(stale | evict))
         room = max(cfg.max_landmarks - s.n_landmarks, 0)
+        n_new = min(new.size, room)  # what the bound on the state admits ...
+        if cfg.budget.max_new > 0:  # ... and the budget
+            room = min(room, cfg.budget.max_new)
         new = new[np.argsort(np.linalg.norm(z[new], axis=1), kind="stable")][:room]  # nearest first
         if new.size:
             l_new, cov_w = point_to_world(s.R_world_base, s.p_world, z[new], Rz[new])
@@ -97,8 +110,9 @@ class LandmarkUpdater:
             s.append_landmarks(l_new, G_pose, cov_w)
             s.book.add(obs.t, size[new])
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
-                   n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum())
-        return LandmarkUpdateReport(obs.t, n_det, int(det.size), int(new.size), n_det - int(det.size) - int(new.size))
+                   n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(),
+                   n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size)
+        return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
 
     @staticmethod
     def _predicted_cov(s: FilterState, cand: np.ndarray, H_pose: np.ndarray, H_l: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from reloc.association import AssociationConfig
+from reloc.budget import ObservationBudget
 
 
 class Factorization(str, Enum):
@@ -68,6 +69,13 @@ class LandmarkConfig:
     min_frame_interval_s: float = 0.95  # rock frames closer than this to the last used one are skipped
     # (only one observation per landmark and keyframe enters the graph, so more frames add little:
     # 2 Hz -> 1 Hz halved the association cost and lowered the ATE, 0.028 -> 0.021 m on the simulator)
+    # per rock frame: at most max_observations factors of graph landmarks (lowest innovation
+    # covariance first; candidates' observations cost nothing and are all kept), and, where
+    # dense_view or more graph landmarks are in view (0: everywhere), at most max_new candidates
+    # entering the graph (best constrained first, the others wait); see docs/smoother.md
+    budget: ObservationBudget = field(
+        default_factory=lambda: ObservationBudget(max_observations=25, max_new=3))
+    dense_view: int = 60
     max_retired: int = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
 
 

@@ -228,6 +228,8 @@ class Isam2Smoother:
                 "n_recoveries": self.solver.n_recoveries,
                 "factorization": self.solver.factorization.value,
                 "n_frames_skipped": self.n_frames_skipped,
+                "n_budget_skipped": self.landmarks.n_budget_skipped,
+                "n_budget_new_skipped": self.landmarks.n_budget_new_skipped,
                 "retracted_fixes": retracted,
                 "fixed_lag_s": self.cfg.fixed_lag_s,
             },

@@ -18,6 +18,7 @@ import numpy as np
 
 from fgslam.smoother.config import LandmarkConfig
 from reloc.association import associate
+from reloc.budget import innovation_trace, select_observations
 from reloc.landmark_model import point_in_base, point_to_world
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
@@ -60,6 +61,8 @@ class LandmarkStore:
         self.live: dict[int, LandmarkRecord] = {}  # candidates and graph landmarks (not retired)
         self._retired: list[int] = []
         self.next_id = 0
+        self.n_budget_skipped = 0  # observations of graph landmarks left out by the budget
+        self.n_budget_new_skipped = 0  # insertions deferred by the budget (the candidate waits)
         # live records near the last keyframe, in creation order (see set_view_cache)
         self._view: list[LandmarkRecord] | None = None
         self._view_center = np.zeros(3)
@@ -139,21 +142,33 @@ class LandmarkStore:
         to_insert: list[LandmarkRecord] = []
         l_new, c_new = point_to_world(R, p, z_base, R_z)
         matched = np.flatnonzero(a.landmark_of >= 0)
+        skipped = self._over_budget(matched, [cands[int(j)] for j in a.landmark_of[matched]], S_hat, R_z, a)
+        if skipped.size:  # seen, but no factor: counted, covariance not fused
+            for i in skipped:
+                rec = cands[int(a.landmark_of[i])]
+                rec.size_sum_m += float(size_m[i])
+                rec.n_obs += 1
+                rec.t_last = t
+            matched = np.setdiff1d(matched, skipped)
         if matched.size:
             self._fuse_batch([cands[int(a.landmark_of[i])] for i in matched], l_new[matched], c_new[matched],
                              size_m[matched], t)
+        for i in matched:
+            rec = cands[int(a.landmark_of[i])]
+            if rec.status == ACTIVE:
+                observed.append((rec.lid, z_kf[i], R_kf[i]))
+            else:
+                if not rec.pending or rec.pending[-1][0] != kf:
+                    rec.pending.append((kf, z_kf[i], R_kf[i]))
+                if len(rec.pending) >= self.cfg.min_obs_to_insert:
+                    to_insert.append(rec)
+        room = self._insert_room(sum(r.status == ACTIVE for r in cands))
+        if room < len(to_insert):  # best-constrained candidates first; the rest wait, pending
+            order = np.argsort([np.trace(r.cov_world_m2) for r in to_insert], kind="stable")
+            self.n_budget_new_skipped += len(to_insert) - room
+            to_insert = [to_insert[k] for k in np.sort(order[:room])]
         for i in range(z_base.shape[0]):
-            j = int(a.landmark_of[i])
-            if j >= 0:
-                rec = cands[j]
-                if rec.status == ACTIVE:
-                    observed.append((rec.lid, z_kf[i], R_kf[i]))
-                else:
-                    if not rec.pending or rec.pending[-1][0] != kf:
-                        rec.pending.append((kf, z_kf[i], R_kf[i]))
-                    if len(rec.pending) >= self.cfg.min_obs_to_insert:
-                        to_insert.append(rec)
-            elif a.is_new[i]:
+            if a.landmark_of[i] < 0 and a.is_new[i]:
                 rec = LandmarkRecord(self.next_id, l_new[i], c_new[i], float(size_m[i]), 1, t, t)
                 rec.pending.append((kf, z_kf[i], R_kf[i]))
                 self.records[rec.lid] = rec
@@ -161,9 +176,33 @@ class LandmarkStore:
                 if self._view is not None:
                     self._view.append(rec)
                 self.next_id += 1
-        n_assoc = int((a.landmark_of >= 0).sum())
         n_new = int(a.is_new.sum())
-        return FrameAssociation(observed, to_insert, n_assoc, n_new, n_rejected + a.n_ambiguous + a.n_out_of_range)
+        return FrameAssociation(observed, to_insert, int(matched.size), n_new,
+                                n_rejected + a.n_ambiguous + a.n_out_of_range + int(skipped.size))
+
+    def _insert_room(self, n_in_view: int) -> int | float:
+        """How many candidates may enter the graph in a frame whose view holds ``n_in_view`` graph
+        landmarks: any number while fewer than ``dense_view`` (a sparse yard is never held back),
+        beyond it at most ``max_new`` per frame (0 = no bound)."""
+        max_new, dense = self.cfg.budget.max_new, self.cfg.dense_view
+        if max_new <= 0 or (dense > 0 and n_in_view < dense):
+            return np.inf
+        return max_new
+
+    def _over_budget(self, matched: np.ndarray, recs: list[LandmarkRecord], S_hat: np.ndarray,
+                     R_z: np.ndarray, a) -> np.ndarray:
+        """Detections (subset of ``matched``) of graph landmarks beyond ``max_observations`` (lowest
+        innovation covariance kept); candidates' observations cost no factor and are never skipped."""
+        active = np.array([r.status == ACTIVE for r in recs], dtype=bool)
+        limit = self.cfg.budget.max_observations
+        if limit <= 0 or active.sum() <= limit:
+            return matched[:0]
+        det = matched[active]
+        keep = select_observations(np.ones(det.size, dtype=bool),
+                                   innovation_trace(S_hat[a.landmark_of[det]], R_z[det]), limit)
+        skipped = np.delete(det, keep)
+        self.n_budget_skipped += int(skipped.size)
+        return skipped
 
     @classmethod
     def _fuse_batch(cls, recs: list[LandmarkRecord], l: np.ndarray, C: np.ndarray, size: np.ndarray,
