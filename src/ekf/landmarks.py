@@ -38,7 +38,7 @@ class LandmarkUpdater:
         self.config = config
         self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
                        "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0,
-                       "n_budget_skipped": 0, "n_budget_new_skipped": 0}
+                       "n_budget_skipped": 0, "n_budget_new_skipped": 0, "n_lone_pairs_skipped": 0}
 
     def _bump(self, count: bool, **kw: int) -> None:
         if count:
@@ -73,6 +73,9 @@ class LandmarkUpdater:
 
         assoc = associate(z, Rz, zhat, S_hat, cfg.association, size, s.book.size_m[cand], joint_cov)
         det, ci = assoc.pairs
+        n_lone = 0
+        if cfg.skip_lone_ambiguous_pair and det.size == 1 and assoc.n_ambiguous > 0:
+            det, ci, n_lone = det[:0], ci[:0], 1
         rows = cand[ci]
         if det.size:
             # every associated landmark counts as seen (confirmation, staleness); only the budget's
@@ -111,7 +114,8 @@ class LandmarkUpdater:
             s.book.add(obs.t, size[new])
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
                    n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(),
-                   n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size)
+                   n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size,
+                   n_lone_pairs_skipped=n_lone)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
 
     @staticmethod
