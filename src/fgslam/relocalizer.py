@@ -48,6 +48,11 @@ class RelocalizerConfig:
     # ... "largest" first (the orbital catalog holds mostly the larger rocks: on a dense yard the
     # nearest 80 are small rocks in a few metres, few of them catalogued) or "nearest" first
     select: str = "largest"
+    # an attempt is skipped while the rover has moved less than min_travel_m and turned less than
+    # min_turn_deg since the last one (standing still, its map and pose say nothing new: my2021,
+    # 687 -> 554 attempts, the same ATE, 44 -> 48x real time); both 0: never skipped
+    min_travel_m: float = 0.05
+    min_turn_deg: float = 3.0
     latency: str = "fixed"  # "fixed": t_recv = t_meas + delay_s; "measured": + matching wall time
     delay_s: float = 2.0
     latency_scale: float = 1.0  # multiplies the measured matching time (slower onboard CPU)
@@ -208,14 +213,26 @@ class Relocalizer:
             self._mcfg = None  # a given matcher is used as it is (no crops)
         self.matcher = matcher
         self._fix_times: list[float] = []
+        self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
+
+    def wants(self, est: PoseEstimate) -> bool:
+        """Whether an attempt at ``est`` is worth making: the rover has moved ``min_travel_m`` or
+        turned ``min_turn_deg`` since the last attempt (always for the first one)."""
+        cfg = self.config
+        if self._last_xyyaw is None or (cfg.min_travel_m <= 0 and cfg.min_turn_deg <= 0):
+            return True
+        d = float(np.hypot(*(est.position_m[:2] - self._last_xyyaw[:2])))
+        dyaw = abs(np.arctan2(np.sin(est.yaw_rad - self._last_xyyaw[2]), np.cos(est.yaw_rad - self._last_xyyaw[2])))
+        return d >= cfg.min_travel_m or np.degrees(dyaw) >= cfg.min_turn_deg
 
     def attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:
         """Try to relocalize the map snapshot taken with pose ``est`` (its ``t`` is ``t_meas``)."""
         cfg = self.config
         est_xyyaw = np.array([est.position_m[0], est.position_m[1], est.yaw_rad])
+        self._last_xyyaw = est_xyyaw
         idx = select_local_map(lmap, est.position_m, cfg)
         if idx.size < cfg.min_landmarks:
             return FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)

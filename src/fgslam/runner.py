@@ -201,11 +201,13 @@ def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: Run
                 next_record = t_first + record_dt * (np.floor((t - t_first) / record_dt + 1e-9) + 1)
             if relocalizer is not None and t >= next_attempt:
                 est = backend.estimate()
-                w0 = time.perf_counter()
-                att = relocalizer.attempt(backend.landmark_map(), est)
-                match_s += time.perf_counter() - w0
-                attempts.append(att)
-                if att.fix is not None:
+                att = None
+                if relocalizer.wants(est):  # a rover standing still has nothing new to match
+                    w0 = time.perf_counter()
+                    att = relocalizer.attempt(backend.landmark_map(), est)
+                    match_s += time.perf_counter() - w0
+                    attempts.append(att)
+                if att is not None and att.fix is not None:
                     heapq.heappush(pending, (att.fix.t_recv, seq, att.fix))
                     sent.append(att.fix)
                     seq += 1

@@ -244,3 +244,16 @@ def test_runner_config_is_checked():
         RunnerConfig(blas_threads=-1)
     with pytest.raises(RunnerError, match="record_rate_hz"):
         RunnerConfig(record_rate_hz=0.0)
+
+
+def test_attempts_wait_until_the_rover_has_moved_or_turned(stream):
+    nn = NearestNeighbourMatcher(stream.catalog.xy_m)
+    reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_travel_m=0.05, min_turn_deg=3.0), matcher=nn)
+    assert reloc.wants(_pose(0.0, 0.0, 0.0))  # the first attempt always
+    reloc.attempt(LandmarkMap.empty(), _pose(0.0, 0.0, 0.0))
+    assert not reloc.wants(_pose(0.03, 0.0, 0.02))  # standing (almost) still
+    assert reloc.wants(_pose(0.04, 0.04, 0.0))  # moved 5.7 cm
+    assert reloc.wants(_pose(0.0, 0.0, np.radians(4.0)))  # turned 4 deg on the spot
+    never = Relocalizer(stream.catalog, RelocalizerConfig(min_travel_m=0.0, min_turn_deg=0.0), matcher=nn)
+    never.attempt(LandmarkMap.empty(), _pose(0.0, 0.0, 0.0))
+    assert never.wants(_pose(0.0, 0.0, 0.0))
