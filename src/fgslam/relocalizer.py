@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fgslam.errors import FgslamError
+from fgslam.metrics import wrap_angle
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.measurements import GlobalFix, RockCatalog
 
@@ -225,7 +226,7 @@ class Relocalizer:
         if self._last_xyyaw is None or (cfg.min_travel_m <= 0 and cfg.min_turn_deg <= 0):
             return True
         d = float(np.hypot(*(est.position_m[:2] - self._last_xyyaw[:2])))
-        dyaw = abs(np.arctan2(np.sin(est.yaw_rad - self._last_xyyaw[2]), np.cos(est.yaw_rad - self._last_xyyaw[2])))
+        dyaw = abs(float(wrap_angle(est.yaw_rad - self._last_xyyaw[2])))
         return d >= cfg.min_travel_m or np.degrees(dyaw) >= cfg.min_turn_deg
 
     def attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:

@@ -178,7 +178,8 @@ def test_accumulated_odometry_covariance_matches_monte_carlo(rng):
 
 
 def test_batched_fix_residuals_equal_one_by_one(rng):
-    from fgslam.smoother.fixes import FixRecord, residual_d2, residual_d2_many
+    from fgslam.smoother.factors import fix_residual
+    from fgslam.smoother.fixes import FixRecord, residual_d2_many
     from reloc.measurements import GlobalFix
 
     recs, T_kf = [], []
@@ -194,6 +195,9 @@ def test_batched_fix_residuals_equal_one_by_one(rng):
         T[:3, 3] = rng.normal(size=3)
         recs.append(FixRecord(fix, i, X(i), T_rel, fix.cov_xyyaw + 0.05 * np.eye(3), i))
         T_kf.append(T)
-    expected = [residual_d2(r, T) for r, T in zip(recs, T_kf)]
+    expected = []
+    for r, T in zip(recs, T_kf):  # the fix factor's own residual, one record at a time
+        res, _ = fix_residual(T, r.T_kf_meas, r.fix.xyyaw)
+        expected.append(res @ np.linalg.solve(r.cov, res))
     assert np.allclose(residual_d2_many(recs, np.array(T_kf)), expected, rtol=1e-12)
     assert residual_d2_many([], np.zeros((0, 4, 4))).shape == (0,)

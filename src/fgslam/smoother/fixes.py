@@ -54,14 +54,9 @@ def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarra
     return float(r @ np.linalg.solve(S, r)), float(np.hypot(r[0], r[1]))
 
 
-def residual_d2(rec: FixRecord, T_world_kf: np.ndarray) -> float:
-    """Squared whitened residual of an applied fix at the current keyframe estimate."""
-    r, _ = fix_residual(T_world_kf, rec.T_kf_meas, rec.fix.xyyaw)
-    return float(r @ np.linalg.solve(rec.cov, r))
-
-
 def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarray:
-    """:func:`residual_d2` of every record at once; ``T_world_kf`` (n, 4, 4) their keyframe estimates."""
+    """Squared whitened residuals (n,) of applied fixes at their keyframes' current estimates
+    ``T_world_kf`` (n, 4, 4): the fix factor's residual (:func:`fix_residual`), for all at once."""
     if not recs:
         return np.zeros(0)
     T = np.asarray(T_world_kf, float) @ np.array([r.T_kf_meas for r in recs])
