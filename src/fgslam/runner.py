@@ -110,6 +110,9 @@ def _stack(records: list) -> Trajectory:
     )
 
 
+FEED_LOOKAHEAD_S = 2.0  # a replay asks its fix feed this far ahead of its stream time
+
+
 class FixFeed(Protocol):
     """Fixes that arrive while a run goes on (a reference pass producing them concurrently)."""
 
@@ -151,6 +154,11 @@ def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: Run
     pending: list[tuple[float, int, GlobalFix]] = []
     for k, f in enumerate(fixes or ()):
         heapq.heappush(pending, (f.t_recv, k, f))
+    # times the known fixes describe: a back-end that rolls back (the EKF) keeps a rollback point
+    # there when told beforehand (expect_fix), so a late fix replays from t_meas, not from its
+    # last periodic checkpoint
+    expect = getattr(backend, "expect_fix", None)
+    marks: list[float] = sorted(f.t_meas for f in fixes or ()) if expect is not None else []
     seq = len(pending)
     record_dt = 1.0 / cfg.record_rate_hz
     period = relocalizer.config.period_s if relocalizer is not None else np.inf
@@ -175,11 +183,19 @@ def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: Run
             next_attempt = t + period
         t_last = t
         if fix_feed is not None and t > feed_t:
-            for f in fix_feed.until(t):
+            # ask a little ahead, so that a fix's t_meas is known before the stream passes it
+            for f in fix_feed.until(t + FEED_LOOKAHEAD_S):
                 heapq.heappush(pending, (f.t_recv, seq, f))
+                if expect is not None:
+                    heapq.heappush(marks, f.t_meas)
                 fed.append(f)
                 seq += 1
-            feed_t = t
+            feed_t = t + FEED_LOOKAHEAD_S
+        while marks and marks[0] < t:  # every input up to the fix time has been processed
+            mark = heapq.heappop(marks)
+            w0 = time.perf_counter()
+            expect(mark)
+            backend_s += time.perf_counter() - w0
         if fix_sink is not None and t >= sink_t + 1.0:
             fix_sink("time", t)
             sink_t = t
@@ -208,6 +224,8 @@ def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: Run
                     match_s += time.perf_counter() - w0
                     attempts.append(att)
                 if att is not None and att.fix is not None:
+                    if expect is not None:
+                        expect(att.fix.t_meas)
                     heapq.heappush(pending, (att.fix.t_recv, seq, att.fix))
                     sent.append(att.fix)
                     seq += 1

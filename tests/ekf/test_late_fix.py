@@ -191,3 +191,25 @@ def test_inconsistent_rejected_fixes_do_not_reopen_the_filter(run):
             outcomes.append(ekf.apply_fix(make_fix(run, k + 1, offset_m=(sign * 1.5, 0.0))))
     assert outcomes and not any(o.accepted for o in outcomes)
     assert ekf.stats().extra["n_consensus_resets"] == 0
+
+
+def test_expected_fix_replays_from_its_own_time_with_the_same_result(run):
+    k = 250  # t_meas at the end of step 249, away from the 2 s periodic checkpoints
+    fix = dataclasses.replace(make_fix(run, k), t_recv=run.t[-1])
+    plain, hinted = EkfSlam(START), EkfSlam(START)
+    feed(plain, run)
+    for j, step in enumerate(run.steps):
+        if j == k:  # every input up to t_meas is in: the runner says a fix for t_meas may come
+            hinted.expect_fix(fix.t_meas)
+        hinted.predict(step)
+        if j in run.frames:
+            hinted.update_landmarks(run.frames[j])
+    hinted.expect_fix(fix.t_meas - 1.0)  # a time already passed: ignored
+    out_plain, out_hinted = plain.apply_fix(fix), hinted.apply_fix(fix)
+    assert out_plain.accepted and out_hinted.accepted
+    assert out_hinted.mahalanobis_d2 == pytest.approx(out_plain.mahalanobis_d2, abs=1e-9)
+    assert_same(plain, hinted)
+    n_plain = plain.stats().extra["n_replayed_entries"]
+    n_hinted = hinted.stats().extra["n_replayed_entries"]
+    assert n_hinted == len(run.steps) - k + sum(j >= k for j in run.frames)  # only what followed t_meas
+    assert n_hinted < n_plain
