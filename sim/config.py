@@ -124,15 +124,14 @@ class StereoConfig:
     fp_size_m: tuple[float, float] = (0.08, 0.4)
     score_true: tuple[float, float] = (7.0, 3.0)  # Beta(a, b) of true detection scores
     score_false: tuple[float, float] = (3.0, 3.0)
-    # Systematic errors (fixed per rock or per run, not white): stereo sees a rock's near surface,
-    # so the measured centroid sits in front of the rock's centre by a per-rock fraction of its
-    # radius, uniform in [0, 2 * surface_bias_frac] (rock shape); the mast camera's mounting is
+    # Systematic errors (fixed per rock or per run, not white). Stereo sees a rock's front surface
+    # and the pipeline moves it back along the line of sight by a fixed share of the rock's size
+    # (reloc.stereo: 0.3 diameters); real rocks differ in shape, so each rock's centre estimate is
+    # off along the line of sight by a per-rock normal draw of centre_error_frac x its radius,
+    # which the detector reports as that line-of-sight sigma. The mast camera's mounting is
     # known only to extrinsic_sigma_deg per axis and its depth scale (baseline calibration) to
-    # depth_scale_sigma. The detector's reported covariance includes the surface term as a
-    # line-of-sight sigma of surface_bias_frac * radius; the calibration errors are unreported.
-    # Off by default (the white model the back-ends assume); docs/sim.md gives realistic values
-    # (0.5, 0.15, 0.003) and what they do to the comparison.
-    surface_bias_frac: float = 0.0
+    # depth_scale_sigma; these two are unreported.
+    centre_error_frac: float = 0.0
     extrinsic_sigma_deg: float = 0.0
     depth_scale_sigma: float = 0.0
 

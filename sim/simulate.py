@@ -27,7 +27,7 @@ from sim.rover import drive_route, insert_pauses, terrain_poses
 from sim.sensors.imu import simulate_imu
 from sim.sensors.motion import dead_reckon, make_commands
 from sim.sensors.orbital import simulate_catalog
-from sim.sensors.stereo import simulate_stereo
+from sim.sensors.stereo import StereoCamera, calibration_error_base, simulate_stereo
 from sim.world import IMPORTED_MEAN_SPEED_MPS, IMPORTED_TRAVERSE_M, World, build_world
 
 log = logging.getLogger(__name__)
@@ -142,6 +142,7 @@ def simulate(cfg: SimConfig) -> SimRun:
         "n_detections": stereo.n_detections,
         "stereo_precision": stereo.n_true / max(stereo.n_detections, 1),
         "stereo_recall": stereo.n_true / max(stereo.n_visible, 1),
+        **_stereo_error_stats(stereo, cfg.sensors.stereo),
         "n_rocks": len(world.rocks),
         "n_catalog": len(cat.catalog),
         "catalog_precision": n_cat_true / max(len(cat.catalog), 1),
@@ -164,3 +165,12 @@ def simulate(cfg: SimConfig) -> SimRun:
         stereo_rock=stereo.rock,
         stereo_visible=stereo.visible,
     )
+
+
+def _stereo_error_stats(stereo, cfg) -> dict:
+    """The run's drawn stereo calibration errors (what a back-end's calibration should find)."""
+    if stereo.bias is None:
+        return {}
+    w, scale = calibration_error_base(stereo.bias, StereoCamera.from_config(cfg))
+    return {"stereo_rotation_error_deg": [round(float(x), 5) for x in np.degrees(w)],
+            "stereo_depth_scale": round(float(scale), 6)}

@@ -9,9 +9,10 @@ configured recall. Positions get stereo noise (depth sigma = z^2 * sigma_disp / 
 lateral sigma = z * sigma_px / f), reported with their covariance in base_link. False positives
 (clutter on the terrain) are added so that true / all detections equals the configured precision.
 
-Systematic errors (see :class:`sim.config.StereoConfig`): the near-surface bias of each rock's
-centroid (along the line of sight, a per-rock fraction of its radius), a per-run rotation error
-of the camera mounting and a per-run depth scale error. They do not average out over frames,
+Systematic errors (see :class:`sim.config.StereoConfig`): the error of each rock's centre estimate
+(along the line of sight, a per-rock fraction of its radius: the pipeline moves the visible
+surface back by a fixed share of the rock's size, and real rocks differ in shape), a per-run
+rotation error of the camera mounting and a per-run depth scale error. They do not average out over frames,
 which is what makes a real SLAM map drift and distort; white noise alone would not.
 """
 
@@ -54,11 +55,11 @@ class StereoCamera:
 
 @dataclass(frozen=True)
 class StereoBias:
-    """Systematic errors of one run: ``surface_frac`` (R,) per rock (fraction of its radius the
-    centroid sits towards the camera), ``R_cam_err`` (3, 3) the true camera rotation relative to
+    """Systematic errors of one run: ``centre_frac`` (R,) per rock (fraction of its radius the
+    centre estimate sits towards the camera; negative: behind the centre), ``R_cam_err`` (3, 3) the true camera rotation relative to
     the nominal mounting (optical frame), ``depth_scale`` the measured / true range ratio."""
 
-    surface_frac: np.ndarray
+    centre_frac: np.ndarray
     R_cam_err: np.ndarray
     depth_scale: float
 
@@ -66,14 +67,14 @@ class StereoBias:
     def draw(n_rocks: int, cfg: StereoConfig, rng: np.random.Generator) -> StereoBias:
         """Seeded draw of the run's systematic errors (no draw, so the stream of ``rng`` is untouched,
         when all three are off)."""
-        terms = {"surface_bias_frac": cfg.surface_bias_frac, "extrinsic_sigma_deg": cfg.extrinsic_sigma_deg,
+        terms = {"centre_error_frac": cfg.centre_error_frac, "extrinsic_sigma_deg": cfg.extrinsic_sigma_deg,
                  "depth_scale_sigma": cfg.depth_scale_sigma}
         bad = [f"{k}={v}" for k, v in terms.items() if not (np.isfinite(v) and v >= 0)]
         if bad:
             raise SimError(f"stereo systematic error settings must be finite and >= 0: {', '.join(bad)}")
         if not any(terms.values()):
             return StereoBias(np.zeros(n_rocks), np.eye(3), 1.0)
-        frac = rng.uniform(0.0, 2.0 * cfg.surface_bias_frac, n_rocks)
+        frac = cfg.centre_error_frac * rng.standard_normal(n_rocks)
         ang = np.deg2rad(cfg.extrinsic_sigma_deg) * rng.standard_normal(3)
         scale = 1.0 + cfg.depth_scale_sigma * rng.standard_normal()
         return StereoBias(frac, _rotvec_matrix(ang), float(scale))
@@ -91,7 +92,7 @@ def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
 
 def biased_points(pc: np.ndarray, radius_m: np.ndarray, frac: np.ndarray, bias: StereoBias) -> np.ndarray:
     """Where stereo puts rock centres ``pc`` (M, 3) (nominal camera frame) before white noise:
-    pulled towards the camera by ``frac * radius_m`` (M,), seen through the mis-mounted camera
+    moved towards the camera by ``frac * radius_m`` (M,), seen through the mis-mounted camera
     and scaled in range. Returns (M, 3) in the nominal camera frame."""
     rng_m = np.linalg.norm(pc, axis=1, keepdims=True)
     u = pc / np.maximum(rng_m, 1e-9)
@@ -105,7 +106,7 @@ def biased_points(pc: np.ndarray, radius_m: np.ndarray, frac: np.ndarray, bias: 
 class StereoFrames:
     """Detections per frame (lists of length F): ``xyz_base_m`` (N, 3), ``cov_base_m2`` (N, 3, 3),
     ``size_m`` (N,), ``score`` (N,), ``rock`` (N,) the true rock row (-1: false positive); and
-    ``visible`` the rock rows visible in each frame."""
+    ``visible`` the rock rows visible in each frame; ``bias`` the run's systematic errors."""
 
     xyz_base_m: list[np.ndarray]
     cov_base_m2: list[np.ndarray]
@@ -113,6 +114,7 @@ class StereoFrames:
     score: list[np.ndarray]
     rock: list[np.ndarray]
     visible: list[np.ndarray]
+    bias: StereoBias | None = None  # the run's systematic errors
 
     @property
     def n_visible(self) -> int:
@@ -194,7 +196,7 @@ def detection_probability(apparent_px: np.ndarray, recall: float, log_slope: flo
 
 def _stereo_cov_cam(pc: np.ndarray, cam: StereoCamera, cfg: StereoConfig, sigma_extra_m: np.ndarray | None = None) -> np.ndarray:
     """Camera-frame covariance (M, 3, 3): depth variance along the line of sight (plus
-    ``sigma_extra_m`` (M,) there, the reported surface uncertainty), lateral across."""
+    ``sigma_extra_m`` (M,) there, the reported centre uncertainty), lateral across."""
     z = np.maximum(pc[:, 2], 0.1)
     s_r = z**2 * cfg.sigma_disparity_px / (cam.f_px * cfg.baseline_m)
     if sigma_extra_m is not None:
@@ -224,12 +226,12 @@ def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, r
     lo, hi = np.log(cfg.fp_size_m[0]), np.log(cfg.fp_size_m[1])
     size_true = np.concatenate([rocks.size_m[rk[det]], np.exp(rng.uniform(lo, hi, len(fp_frame)))])
     radius = 0.5 * size_true
-    # clutter is a patch of terrain, not a rock with a hidden centre: no surface bias
-    frac = np.concatenate([bias.surface_frac[rk[det]], np.zeros(len(fp_frame))])
+    # clutter is a patch of terrain, not a rock with a hidden centre: no centre error
+    frac = np.concatenate([bias.centre_frac[rk[det]], np.zeros(len(fp_frame))])
     seen = biased_points(pts, radius, frac, bias) if len(pts) else pts
-    sigma_surface = cfg.surface_bias_frac * radius
-    cov_c = _stereo_cov_cam(seen, cam, cfg, sigma_surface) if len(pts) else np.zeros((0, 3, 3))
-    white = _stereo_cov_cam(seen, cam, cfg) if len(pts) and cfg.surface_bias_frac > 0 else cov_c
+    sigma_centre = cfg.centre_error_frac * radius
+    cov_c = _stereo_cov_cam(seen, cam, cfg, sigma_centre) if len(pts) else np.zeros((0, 3, 3))
+    white = _stereo_cov_cam(seen, cam, cfg) if len(pts) and cfg.centre_error_frac > 0 else cov_c
     L = np.linalg.cholesky(white) if len(pts) else white
     meas_c = seen + np.einsum("mij,mj->mi", L, rng.standard_normal(pts.shape)) if len(pts) else pts
     Rbc, tbc = cam.T_base_cam[:3, :3], cam.T_base_cam[:3, 3]
@@ -249,7 +251,19 @@ def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, r
         out["size"].append(size[sel])
         out["score"].append(score[sel])
         out["rock"].append(truth[sel])
-    return StereoFrames(out["xyz"], out["cov"], out["size"], out["score"], out["rock"], visible)
+    return StereoFrames(out["xyz"], out["cov"], out["size"], out["score"], out["rock"], visible, bias)
+
+
+def calibration_error_base(bias: StereoBias, cam: StereoCamera) -> tuple[np.ndarray, float]:
+    """The run's mounting and scale errors as the back-ends' calibration sees them: the rotation
+    vector (3,) rad of ``E`` with ``z_base ~ scale E q_base`` (base_link axes), and the scale."""
+    R_bc = cam.T_base_cam[:3, :3]
+    E = R_bc @ bias.R_cam_err.T @ R_bc.T
+    c = float(np.clip((np.trace(E) - 1.0) / 2.0, -1.0, 1.0))
+    th = float(np.arccos(c))
+    v = np.array([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
+    w = 0.5 * v if th < 1e-9 else th / (2.0 * np.sin(th)) * v
+    return w, bias.depth_scale
 
 
 def _clutter(world: World, T_wc: np.ndarray, cam: StereoCamera, cfg: StereoConfig, n: int, rng: np.random.Generator):

@@ -1,4 +1,4 @@
-"""Systematic stereo errors: near-surface centroid bias, camera mounting and depth scale."""
+"""Systematic stereo errors: per-rock centre error, camera mounting and depth scale."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ def _no_calibration_error(frac: np.ndarray) -> StereoBias:
     return StereoBias(frac, np.eye(3), 1.0)
 
 
-def test_surface_bias_pulls_the_centroid_towards_the_camera_by_the_rock_fraction():
-    pc = np.array([[0.0, 0.0, 5.0], [3.0, 1.0, 4.0]])
-    radius = np.array([0.2, 0.4])
-    frac = np.array([0.5, 1.0])
+def test_centre_error_moves_the_point_along_the_line_of_sight_by_the_rock_fraction():
+    pc = np.array([[0.0, 0.0, 5.0], [3.0, 1.0, 4.0], [-1.0, 0.5, 3.0]])
+    radius = np.array([0.2, 0.4, 0.3])
+    frac = np.array([0.5, 1.0, -0.4])  # negative: behind the centre
     out = biased_points(pc, radius, frac, _no_calibration_error(frac))
     shift = np.linalg.norm(pc, axis=1) - np.linalg.norm(out, axis=1)
     np.testing.assert_allclose(shift, frac * radius, atol=1e-12)
@@ -26,7 +26,7 @@ def test_surface_bias_pulls_the_centroid_towards_the_camera_by_the_rock_fraction
 
 def test_mounting_error_rotates_and_depth_scale_stretches_every_point_alike():
     rng = np.random.default_rng(3)
-    cfg = StereoConfig(surface_bias_frac=0.0, extrinsic_sigma_deg=0.5, depth_scale_sigma=0.01)
+    cfg = StereoConfig(centre_error_frac=0.0, extrinsic_sigma_deg=0.5, depth_scale_sigma=0.01)
     bias = StereoBias.draw(4, cfg, rng)
     np.testing.assert_allclose(bias.R_cam_err @ bias.R_cam_err.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(bias.R_cam_err) > 0
@@ -44,13 +44,15 @@ def test_mounting_error_rotates_and_depth_scale_stretches_every_point_alike():
 def test_default_config_has_no_systematic_error_and_draw_is_seeded():
     cfg = StereoConfig()
     bias = StereoBias.draw(5, cfg, np.random.default_rng(0))
-    assert np.all(bias.surface_frac == 0) and bias.depth_scale == 1.0
+    assert np.all(bias.centre_frac == 0) and bias.depth_scale == 1.0
     np.testing.assert_allclose(bias.R_cam_err, np.eye(3))
-    real = StereoConfig(surface_bias_frac=0.5, extrinsic_sigma_deg=0.15, depth_scale_sigma=0.003)
-    a = StereoBias.draw(50, real, np.random.default_rng(7))
-    b = StereoBias.draw(50, real, np.random.default_rng(7))
-    np.testing.assert_array_equal(a.surface_frac, b.surface_frac)
-    assert 0.0 <= a.surface_frac.min() and a.surface_frac.max() <= 1.0
+    real = StereoConfig(centre_error_frac=0.25, extrinsic_sigma_deg=0.15, depth_scale_sigma=0.003)
+    a = StereoBias.draw(4000, real, np.random.default_rng(7))
+    b = StereoBias.draw(4000, real, np.random.default_rng(7))
+    np.testing.assert_array_equal(a.centre_frac, b.centre_frac)
+    # zero mean (the pipeline's centre offset is calibrated), the configured spread
+    assert abs(a.centre_frac.mean()) < 4 * 0.25 / np.sqrt(4000)
+    assert 0.23 < a.centre_frac.std() < 0.27
 
 
 def test_negative_settings_are_rejected_by_name():
@@ -58,5 +60,24 @@ def test_negative_settings_are_rejected_by_name():
 
     from sim.errors import SimError
 
-    with pytest.raises(SimError, match="surface_bias_frac=-0.1"):
-        StereoBias.draw(3, StereoConfig(surface_bias_frac=-0.1), np.random.default_rng(0))
+    with pytest.raises(SimError, match="centre_error_frac=-0.1"):
+        StereoBias.draw(3, StereoConfig(centre_error_frac=-0.1), np.random.default_rng(0))
+
+
+def test_calibration_error_in_base_link_is_what_the_back_ends_estimate():
+    from ekf.so3 import exp_so3
+    from sim.sensors.stereo import StereoCamera, calibration_error_base
+
+    cfg = StereoConfig(extrinsic_sigma_deg=0.3, depth_scale_sigma=0.01)
+    bias = StereoBias.draw(3, cfg, np.random.default_rng(5))
+    cam = StereoCamera.from_config(cfg)
+    w, scale = calibration_error_base(bias, cam)
+    assert scale == bias.depth_scale
+    R_bc, t_bc = cam.T_base_cam[:3, :3], cam.T_base_cam[:3, 3]
+    q_base = np.array([[4.0, 1.0, -0.8], [7.0, -2.0, -0.85], [2.0, 0.3, -0.9]])  # rocks ahead, on the ground
+    pc = (q_base - t_bc) @ R_bc  # nominal camera frame
+    z_base = biased_points(pc, np.full(3, 0.2), np.zeros(3), bias) @ R_bc.T + t_bc
+    # z = t + s E (q - t) exactly, and the back-ends' model about the base origin to ~mm
+    E = exp_so3(w)
+    np.testing.assert_allclose(z_base, t_bc + scale * (q_base - t_bc) @ E.T, atol=1e-12)
+    np.testing.assert_allclose(z_base, scale * q_base @ E.T, atol=0.003 + 2 * abs(scale - 1) * np.linalg.norm(t_bc))
