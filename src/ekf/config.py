@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
+from reloc.calibration import CalibrationConfig
 from reloc.errors import ConfigError
 from reloc.landmark_book import LandmarkBookConfig
 
@@ -73,6 +74,7 @@ class EkfConfig:
     association: AssociationConfig = field(default_factory=AssociationConfig)
     book: LandmarkBookConfig = field(default_factory=LandmarkBookConfig)
     fix_gate: FixGateConfig = field(default_factory=FixGateConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     # per rock frame: at most max_observations associated observations in the update (confirmed
     # landmarks first, then the lowest innovation covariance) and max_new initialisations
     # (nearest first); see reloc.budget and docs/ekf.md
@@ -83,6 +85,7 @@ class EkfConfig:
     # compatibility check, and an ambiguous scene is where a wrong pair hides (my2022: one such
     # pair after a steep slope moved the rover 0.26 m the wrong way, EKF ATE 0.377 m -> 0.028 m)
     skip_lone_ambiguous_pair: bool = True
+    rock_cov_scale: float = 1.0  # the detector's reported rock covariance is multiplied by this
     attitude_sigma_rad: float = 0.01  # roll/pitch pseudo-measurement from the IMU's gravity reference
     attitude_period_s: float = 1.0  # how often it is applied; <= 0 disables it
     landmark_period_s: float = 0.2  # rock frames closer than this to the last used one are skipped
@@ -101,6 +104,7 @@ class EkfConfig:
             (self.checkpoint_period_s > 0, f"checkpoint_period_s must be > 0, got {self.checkpoint_period_s}"),
             (self.attitude_sigma_rad > 0, f"attitude_sigma_rad must be > 0, got {self.attitude_sigma_rad}"),
             (self.landmark_period_s >= 0, f"landmark_period_s must be >= 0, got {self.landmark_period_s}"),
+            (self.rock_cov_scale > 0, f"rock_cov_scale must be > 0, got {self.rock_cov_scale}"),
             (self.blas_threads >= 0, f"blas_threads must be >= 0, got {self.blas_threads}"),
             (all(v >= 0 for v in vars(self.motion).values()), "motion noise parameters must be >= 0"),
         ]

@@ -12,23 +12,51 @@ from __future__ import annotations
 import numpy as np
 
 from ekf.config import EkfConfig
-from ekf.state import POSE_DIM, FilterState
+from ekf.state import CALIB_DIM, FilterState
 from ekf.updates import block_diag3, joseph_update
 from reloc.association import associate
 from reloc.backend import LandmarkUpdateReport
 from reloc.budget import innovation_trace, select_observations
-from reloc.landmark_model import init_jacobians, point_in_base, point_jacobians, point_to_world
+from reloc.landmark_model import (
+    init_jacobians,
+    point_in_base,
+    point_jacobians,
+    point_to_world,
+    skew,
+)
 from reloc.measurements import RockObservations
 
 
-def stacked_jacobian(H_pose: np.ndarray, H_l: np.ndarray) -> np.ndarray:
-    """Dense rows (3k, 6 + 3k) over ``[pose, l_1, ..., l_k]`` for k point measurements."""
-    k = H_pose.shape[0]
-    Hc = np.zeros((3 * k, POSE_DIM + 3 * k))
-    Hc[:, :POSE_DIM] = H_pose.reshape(3 * k, POSE_DIM)
+def stacked_jacobian(H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
+    """Dense rows (3k, h + 3k) over ``[head (h), l_1, ..., l_k]`` for k point measurements."""
+    k, _, h = H_head.shape
+    Hc = np.zeros((3 * k, h + 3 * k))
+    Hc[:, :h] = H_head.reshape(3 * k, h)
     for i in range(k):
-        Hc[3 * i : 3 * i + 3, POSE_DIM + 3 * i : POSE_DIM + 3 * i + 3] = H_l
+        Hc[3 * i : 3 * i + 3, h + 3 * i : h + 3 * i + 3] = H_l
     return Hc
+
+
+def calibrated_measurements(s: FilterState, z: np.ndarray, Rz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rock measurements corrected by the nominal calibration: ``z' = E^T z / s`` (N, 3) and
+    ``E^T Rz E / s^2`` (N, 3, 3); unchanged without calibration states."""
+    if not s.calibrated:
+        return z, Rz
+    E, sc = s.calib_R, s.calib_s
+    return (z @ E) / sc, np.einsum("ji,njk,kl->nil", E, Rz, E) / (sc * sc)
+
+
+def calibration_jacobians(s: FilterState, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For corrected points ``q`` (N, 3) (predicted or measured, base_link): the Jacobian (N, 3, 4)
+    of the corrected measurement ``z'`` w.r.t. ``[de, ds]`` (``z' ~ q + (ds/s) q - [q]x E^T de``),
+    and the Jacobian (N, 3, 4) of a landmark initialised from ``z' = q`` (``l = p + R z'`` with
+    ``q_true = z' - (ds/s) z' + [z']x E^T de``) before the rotation to world."""
+    E, sc = s.calib_R, s.calib_s
+    K = skew(q)  # (N, 3, 3)
+    H = np.empty((q.shape[0], 3, CALIB_DIM))
+    H[:, :, :3] = -K @ E.T
+    H[:, :, 3] = q / sc
+    return H, -H
 
 
 class LandmarkUpdater:
@@ -53,7 +81,9 @@ class LandmarkUpdater:
             self._bump(count, n_frames_skipped=1)
             return LandmarkUpdateReport(obs.t, n_det, 0, 0, n_det)
         s.t_last_frame = obs.t
-        z, Rz, size = obs.xyz_base_m, obs.cov_base_m2, obs.size_m
+        z, Rz = calibrated_measurements(s, obs.xyz_base_m, obs.cov_base_m2 * cfg.rock_cov_scale)
+        size = obs.size_m
+        head = s.head
 
         cand = np.zeros(0, dtype=int)
         zhat = np.zeros((0, 3))
@@ -63,11 +93,13 @@ class LandmarkUpdater:
             cand = np.flatnonzero(np.einsum("ij,ij->i", zhat_all, zhat_all) <= limit * limit)
             zhat = zhat_all[cand]
         H_pose, H_l = point_jacobians(s.R_world_base, s.p_world, s.l_world[cand])
+        if s.calibrated:
+            H_pose = np.concatenate([H_pose, calibration_jacobians(s, zhat)[0]], axis=2)
         S_hat = self._predicted_cov(s, cand, H_pose, H_l)
 
         def joint_cov(det: np.ndarray, ci: np.ndarray) -> np.ndarray:
             rows = cand[ci]
-            idx = np.concatenate([np.arange(POSE_DIM), s.landmark_cols(rows)])
+            idx = np.concatenate([np.arange(head), s.landmark_cols(rows)])
             Hc = stacked_jacobian(H_pose[ci], H_l)
             return Hc @ s.P[np.ix_(idx, idx)] @ Hc.T + block_diag3(Rz[det])
 
@@ -84,7 +116,7 @@ class LandmarkUpdater:
             use = select_observations(s.book.confirmed[rows], innovation_trace(S_hat[ci], Rz[det]),
                                       cfg.budget.max_observations)
             u_det, u_ci = det[use], ci[use]
-            idx = np.concatenate([np.arange(POSE_DIM), s.landmark_cols(cand[u_ci])])
+            idx = np.concatenate([np.arange(head), s.landmark_cols(cand[u_ci])])
             Hc = stacked_jacobian(H_pose[u_ci], H_l)
             nu = (z[u_det] - zhat[u_ci]).reshape(-1)
             s.P, res = joseph_update(s.P, idx, Hc, nu, block_diag3(Rz[u_det]))
@@ -110,6 +142,9 @@ class LandmarkUpdater:
         if new.size:
             l_new, cov_w = point_to_world(s.R_world_base, s.p_world, z[new], Rz[new])
             G_pose, _ = init_jacobians(s.R_world_base, z[new])
+            if s.calibrated:
+                G_cal = np.einsum("ij,njk->nik", s.R_world_base, calibration_jacobians(s, z[new])[1])
+                G_pose = np.concatenate([G_pose, G_cal], axis=2)
             s.append_landmarks(l_new, G_pose, cov_w)
             s.book.add(obs.t, size[new])
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
@@ -120,11 +155,11 @@ class LandmarkUpdater:
 
     @staticmethod
     def _predicted_cov(s: FilterState, cand: np.ndarray, H_pose: np.ndarray, H_l: np.ndarray) -> np.ndarray:
-        """``H P H^T`` (M, 3, 3) of each candidate's predicted measurement (pose + landmark blocks)."""
+        """``H P H^T`` (M, 3, 3) of each candidate's predicted measurement (head + landmark blocks)."""
         if cand.size == 0:
             return np.zeros((0, 3, 3))
-        Ppp = s.P[:POSE_DIM, :POSE_DIM]
-        Ppl = s.pose_landmark_cov(cand)  # (M, 6, 3)
+        Ppp = s.P[: s.head, : s.head]
+        Ppl = s.head_landmark_cov(cand)  # (M, head, 3)
         Pll = s.landmark_cov_blocks(cand)  # (M, 3, 3)
         A = np.einsum("mij,jk,mlk->mil", H_pose, Ppp, H_pose)
         C = np.einsum("mij,mjk,lk->mil", H_pose, Ppl, H_l)

@@ -19,8 +19,8 @@ from ekf.errors import EkfInputError
 from ekf.history import Entry, History
 from ekf.landmarks import LandmarkUpdater
 from ekf.motion import propagate, split_step
-from ekf.so3 import project_so3
-from ekf.state import POSE_DIM, FilterState
+from ekf.so3 import log_so3, project_so3
+from ekf.state import CALIB_DIM, POSE_DIM, FilterState
 from ekf.updates import attitude_model, fix_model, fix_residual, joseph_update
 from reloc.backend import (
     BackendStats,
@@ -54,13 +54,21 @@ class EkfSlam:
             raise EkfInputError("initial pose must have a finite (4, 4) T_world_base and (6, 6) cov")
         if not math.isfinite(initial.t):
             raise EkfInputError(f"initial pose time is not finite: {initial.t}")
+        P0 = 0.5 * (cov + cov.T)
+        cal = self.config.calibration
+        head = POSE_DIM
+        if cal.enabled:  # stereo rotation error and range scale, with their priors
+            head = POSE_DIM + CALIB_DIM
+            prior = cal.prior_sigmas() ** 2  # a zero sigma keeps that term nominal
+            P0 = np.block([[P0, np.zeros((POSE_DIM, CALIB_DIM))], [np.zeros((CALIB_DIM, POSE_DIM)), np.diag(prior)]])
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
             p_world=T[:3, 3].copy(),
             R_world_base=project_so3(T[:3, :3]),
             l_world=np.zeros((0, 3)),
-            P=0.5 * (cov + cov.T),
+            P=P0,
+            head=head,
             book=LandmarkBook(self.config.book),
             t_last_attitude=float(initial.t),
             t_last_frame=-math.inf,
@@ -94,6 +102,19 @@ class EkfSlam:
         self._count["n_landmark_frames"] += 1
         with blas_limit(self.config.blas_threads):
             return self._do_obs(obs)
+
+    def expect_fix(self, t_meas: float) -> None:
+        """A fix for ``t_meas`` (at or after the state's time) may arrive later: keep a rollback
+        point here, so that its replay starts at ``t_meas`` rather than at the last periodic
+        checkpoint. Results do not change (a replay from any earlier checkpoint reproduces this
+        state); only the replayed stretch gets shorter. The periodic schedule is untouched."""
+        s = self._s
+        if not t_meas >= s.t - _T_EPS:
+            return
+        cps = self._hist.checkpoints
+        if cps and cps[-1].t >= s.t - _T_EPS and cps[-1].log_index == len(self._hist.log):
+            return
+        self._hist.checkpoint(s, len(self._traj_t))
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         """Gate and apply a planar fix at ``fix.t_meas``, rolling back and replaying when it is late."""
@@ -147,15 +168,27 @@ class EkfSlam:
         extra.update(self._landmarks.counts)
         extra["n_tentative"] = int(np.sum(~self._s.book.confirmed))
         extra["fix_reject_reasons"] = dict(self._reject_reasons)
+        if self._s.calibrated:
+            extra["calibration"] = self.calibration()
         return BackendStats(
             n_predict=c["n_predict"], n_landmark_frames=c["n_landmark_frames"],
             n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],
             n_landmarks=int(np.sum(self._s.book.confirmed)), extra=extra,
         )
 
+    def calibration(self) -> dict:
+        """The estimated stereo calibration (empty without calibration states): rotation vector
+        of ``E`` (deg, base_link), range scale, and their sigmas."""
+        s = self._s
+        if not s.calibrated:
+            return {}
+        sig = np.sqrt(np.diag(s.P)[POSE_DIM:POSE_DIM + CALIB_DIM])
+        return {"rotation_deg": np.degrees(log_so3(s.calib_R)).round(4).tolist(), "scale": round(s.calib_s, 6),
+                "rotation_sigma_deg": np.degrees(sig[:3]).round(4).tolist(), "scale_sigma": round(float(sig[3]), 6)}
+
     @property
     def state_vector_size(self) -> int:
-        """Dimension of the error state (6 + 3 x landmarks, tentative included)."""
+        """Dimension of the error state (6 [+ 4 calibration] + 3 x landmarks, tentative included)."""
         return int(self._s.P.shape[0])
 
     def full_covariance(self) -> np.ndarray:

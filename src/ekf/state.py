@@ -1,13 +1,16 @@
 """The filter state: pose, landmarks, joint covariance, landmark book and schedule clocks.
 
-Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), dl_0 (3), dl_1 (3), ...]``
-with ``R_true = Exp(dtheta) R``: the convention of :mod:`reloc.backend`, so the pose block of
-``P`` is directly the pose covariance of :class:`reloc.backend.PoseEstimate`.
+Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), (de (3), ds (1)),
+dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
+:mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
+:class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
+holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
+(see :class:`ekf.config.CalibrationConfig`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -15,6 +18,7 @@ from ekf.so3 import exp_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 
 POSE_DIM = 6
+CALIB_DIM = 4  # rotation error (3) and range scale (1) of the stereo measurements
 
 
 def take_symmetric(P: np.ndarray, cols: np.ndarray, max_runs: int = 12) -> np.ndarray:
@@ -50,6 +54,13 @@ class FilterState:
     t_last_checkpoint: float
     n_steps_since_orthonormalise: int = 0
     fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
+    head: int = POSE_DIM  # states before the landmarks: the pose, and the calibration when on
+    calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
+    calib_s: float = 1.0  # measured / true range
+
+    @property
+    def calibrated(self) -> bool:
+        return self.head > POSE_DIM
 
     @property
     def n_landmarks(self) -> int:
@@ -70,50 +81,58 @@ class FilterState:
             t_last_checkpoint=self.t_last_checkpoint,
             n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
             fix_times=self.fix_times,
+            head=self.head,
+            calib_R=self.calib_R.copy(),
+            calib_s=self.calib_s,
         )
 
     def inject(self, dx: np.ndarray) -> None:
-        """Apply an error-state correction ``dx`` (6 + 3n,) to the nominal state."""
+        """Apply an error-state correction ``dx`` (head + 3n,) to the nominal state."""
         self.p_world = self.p_world + dx[:3]
         self.R_world_base = exp_so3(dx[3:6]) @ self.R_world_base
+        if self.calibrated:
+            self.calib_R = exp_so3(dx[6:9]) @ self.calib_R
+            self.calib_s = self.calib_s + float(dx[9])
         if self.n_landmarks:
-            self.l_world = self.l_world + dx[POSE_DIM:].reshape(-1, 3)
+            self.l_world = self.l_world + dx[self.head:].reshape(-1, 3)
 
     def orthonormalise(self) -> None:
-        """Remove the round-off drift of the rotation matrix."""
+        """Remove the round-off drift of the rotation matrices."""
         self.R_world_base = project_so3(self.R_world_base)
+        if self.calibrated:
+            self.calib_R = project_so3(self.calib_R)
         self.n_steps_since_orthonormalise = 0
 
     def landmark_cols(self, rows: np.ndarray) -> np.ndarray:
         """State columns (3k,) of the landmarks at ``rows`` (k,)."""
         rows = np.asarray(rows, dtype=int)
-        return (POSE_DIM + 3 * rows[:, None] + np.arange(3)[None, :]).reshape(-1)
+        return (self.head + 3 * rows[:, None] + np.arange(3)[None, :]).reshape(-1)
 
     def landmark_cov_blocks(self, rows: np.ndarray) -> np.ndarray:
         """Marginal covariances (k, 3, 3) of the landmarks at ``rows``."""
         cols = self.landmark_cols(rows).reshape(-1, 3)
         return self.P[cols[:, :, None], cols[:, None, :]]
 
-    def pose_landmark_cov(self, rows: np.ndarray) -> np.ndarray:
-        """Pose-landmark cross covariances (k, 6, 3) of the landmarks at ``rows``."""
+    def head_landmark_cov(self, rows: np.ndarray) -> np.ndarray:
+        """Cross covariances (k, head, 3) of the pose (and calibration) with the landmarks at ``rows``."""
         cols = self.landmark_cols(rows).reshape(-1, 3)
-        return np.transpose(self.P[:POSE_DIM][:, cols], (1, 0, 2))
+        return np.transpose(self.P[: self.head][:, cols], (1, 0, 2))
 
-    def append_landmarks(self, l_new: np.ndarray, G_pose: np.ndarray, cov_meas_world: np.ndarray) -> None:
-        """Initialise k landmarks ``l_new`` (k, 3) from ``l = f(pose, z)`` with Jacobian ``G_pose``
-        (k, 3, 6) w.r.t. the pose and measurement covariance in world ``cov_meas_world`` (k, 3, 3);
-        their cross covariances with the whole state are ``G P[pose, :]``."""
+    def append_landmarks(self, l_new: np.ndarray, G_head: np.ndarray, cov_meas_world: np.ndarray) -> None:
+        """Initialise k landmarks ``l_new`` (k, 3) from ``l = f(pose, calibration, z)`` with
+        Jacobian ``G_head`` (k, 3, head) w.r.t. the head states and measurement covariance in world
+        ``cov_meas_world`` (k, 3, 3); their cross covariances with the whole state are ``G P[head, :]``."""
         k = l_new.shape[0]
         if k == 0:
             return
         n_old = self.P.shape[0]
-        G = G_pose.reshape(3 * k, POSE_DIM)
-        cross = G @ self.P[:POSE_DIM]  # (3k, N)
+        G = G_head.reshape(3 * k, self.head)
+        cross = G @ self.P[: self.head]  # (3k, N)
         P_new = np.empty((n_old + 3 * k, n_old + 3 * k))
         P_new[:n_old, :n_old] = self.P
         P_new[n_old:, :n_old] = cross
         P_new[:n_old, n_old:] = cross.T
-        block = cross[:, :POSE_DIM] @ G.T
+        block = cross[:, : self.head] @ G.T
         for i in range(k):
             block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += cov_meas_world[i]
         P_new[n_old:, n_old:] = 0.5 * (block + block.T)
@@ -125,7 +144,7 @@ class FilterState:
         keep = np.asarray(keep, dtype=bool)
         if keep.all():
             return
-        cols = np.concatenate([np.arange(POSE_DIM), self.landmark_cols(np.flatnonzero(keep))])
+        cols = np.concatenate([np.arange(self.head), self.landmark_cols(np.flatnonzero(keep))])
         self.P = take_symmetric(self.P, cols)
         self.l_world = self.l_world[keep]
         self.book.keep(keep)

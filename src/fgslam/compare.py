@@ -82,6 +82,8 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
+    if res.stats.extra.get("calibration"):  # the back-end's estimated stereo calibration
+        out["calibration"] = res.stats.extra["calibration"]
     if gt is None:
         return out
     out["ate"] = M.ate(res.final, gt).to_dict()

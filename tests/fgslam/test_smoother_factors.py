@@ -201,3 +201,34 @@ def test_batched_fix_residuals_equal_one_by_one(rng):
         expected.append(res @ np.linalg.solve(r.cov, res))
     assert np.allclose(residual_d2_many(recs, np.array(T_kf)), expected, rtol=1e-12)
     assert residual_d2_many([], np.zeros((0, 4, 4))).shape == (0,)
+
+
+def test_calibrated_point_factor_jacobians_match_numerical(rng):
+    from gtsam.symbol_shorthand import C
+
+    from fgslam.smoother.factors import calibrated_point_residual, make_calibrated_point_factor
+
+    T = _random_pose(rng)
+    l_world = T[:3, :3] @ np.array([5.0, 1.0, 0.2]) + T[:3, 3]
+    c = np.array([0.002, -0.003, 0.004, 0.003])  # rotation (rad), scale - 1: calibration-sized
+    z = np.array([5.1, 0.9, 0.25])
+    r, Hp, Hl, Hc = calibrated_point_residual(T, l_world, c, z)
+    num_p = _numerical_jacobian(lambda Tp: calibrated_point_residual(Tp, l_world, c, z)[0], T)
+    num_l = np.column_stack([(calibrated_point_residual(T, l_world + e, c, z)[0]
+                              - calibrated_point_residual(T, l_world - e, c, z)[0]) / 2e-6 for e in np.eye(3) * 1e-6])
+    num_c = np.column_stack([(calibrated_point_residual(T, l_world, c + e, z)[0]
+                              - calibrated_point_residual(T, l_world, c - e, z)[0]) / 2e-7 for e in np.eye(4) * 1e-7])
+    np.testing.assert_allclose(Hp, num_p, atol=1e-5)
+    np.testing.assert_allclose(Hl, num_l, atol=1e-6)
+    np.testing.assert_allclose(Hc, num_c, atol=1e-6)
+    # no calibration: the residual is the plain point model R^T (l - t) - z
+    np.testing.assert_allclose(calibrated_point_residual(T, l_world, np.zeros(4), z)[0],
+                               T[:3, :3].T @ (l_world - T[:3, 3]) - z, atol=1e-12)
+    f = make_calibrated_point_factor(X(0), L(0), C(0), z, np.eye(3) * 0.01, huber_k=1e9)
+    v = gtsam.Values()
+    v.insert(X(0), gtsam.Pose3(T))
+    v.insert(L(0), l_world)
+    v.insert(C(0), c)
+    np.testing.assert_allclose(f.unwhitenedError(v), r, atol=1e-12)
+    A, _ = f.linearize(v).jacobian()
+    np.testing.assert_allclose(A, 10.0 * np.hstack([Hp, Hl, Hc]), atol=1e-9)  # whitened by 1/0.1

@@ -253,3 +253,53 @@ def test_cli_bench_isam2_writes_results(tmp_path):
     assert set(runs) == {"no_fixes", "fixes", "fixes_10pct_wrong"}
     assert all(np.isfinite(r["ate_final_m"]) and r["latency_p99_ms"] > 0 for r in runs.values())
     assert res["fixed_lag"]["distance_m"] > 10 and len(res["fixed_lag"]["bins"]) == 10
+
+
+def test_rock_cov_scale_equals_feeding_scaled_covariances():
+    import dataclasses
+
+    from fgslam.errors import SmootherError
+    from fgslam.smoother.config import LandmarkConfig
+    from reloc.measurements import RockObservations
+
+    run = simulate_synthetic(SyntheticConfig(seed=5, duration_s=20.0))
+    scaled_meas = [dataclasses.replace(m, cov_base_m2=m.cov_base_m2 * 4.0) if isinstance(m, RockObservations) else m
+                   for m in run.measurements]
+    cfg = SmootherConfig(landmarks=LandmarkConfig(rock_cov_scale=4.0))
+    a, b, plain = Isam2Smoother(run.initial_pose, cfg), Isam2Smoother(run.initial_pose), Isam2Smoother(run.initial_pose)
+    drive(a, run.measurements, [])
+    drive(b, scaled_meas, [])
+    drive(plain, run.measurements, [])
+    np.testing.assert_allclose(a.estimate().T_world_base, b.estimate().T_world_base, atol=1e-9)
+    np.testing.assert_allclose(a.estimate().cov, b.estimate().cov, rtol=1e-6, atol=1e-12)
+    assert np.trace(a.estimate().cov[:2, :2]) > 1.1 * np.trace(plain.estimate().cov[:2, :2])
+    with pytest.raises(SmootherError, match="rock_cov_scale"):
+        LandmarkConfig(rock_cov_scale=0.0)
+
+
+def test_calibration_variable_recovers_a_yaw_and_scale_error():
+    import dataclasses
+
+    from ekf.so3 import exp_so3
+    from fgslam.errors import SmootherError
+    from reloc.calibration import CalibrationConfig
+    from reloc.measurements import RockObservations
+
+    run = simulate_synthetic(SyntheticConfig(seed=4, duration_s=90.0))
+    E, scale = exp_so3(np.radians([0.0, 0.0, 1.5])), 1.01
+    meas = [dataclasses.replace(m, xyz_base_m=scale * m.xyz_base_m @ E.T,
+                                cov_base_m2=scale**2 * np.einsum("ij,njk,lk->nil", E, m.cov_base_m2, E))
+            if isinstance(m, RockObservations) else m for m in run.measurements]
+    cal = CalibrationConfig(yaw_sigma_deg=3.0, scale_sigma=0.03)
+    sm = Isam2Smoother(run.initial_pose, SmootherConfig(calibration=cal))
+    drive(sm, meas, [])
+    c = sm.stats().extra["calibration"]
+    assert abs(c["rotation_deg"][2] - 1.5) < 3 * c["rotation_sigma_deg"][2] and c["rotation_sigma_deg"][2] < 1.0
+    assert abs(c["scale"] - scale) < 3 * c["scale_sigma"]
+    assert c["rotation_deg"][:2] == [0.0, 0.0]  # roll and pitch not estimated (sigma 0)
+    plain = Isam2Smoother(run.initial_pose)
+    drive(plain, meas, [])
+    ta, tp = sm.trajectory(), plain.trajectory()
+    assert ate_m(run, ta.t, ta.T_world_base) < ate_m(run, tp.t, tp.T_world_base)
+    with pytest.raises(SmootherError, match="full smoother"):
+        SmootherConfig(calibration=cal, fixed_lag_s=30.0)

@@ -9,8 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import Enum
 
+from fgslam.errors import SmootherError
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
+from reloc.calibration import CalibrationConfig
 
 
 class Factorization(str, Enum):
@@ -65,6 +67,7 @@ class LandmarkConfig:
     min_obs_to_insert: int = 2  # observations (on distinct keyframes) before a rock enters the graph
     candidate_timeout_s: float = 10.0  # a candidate not confirmed within this is dropped
     huber_k: float = 3.0  # on the whitened 3-dof residual
+    rock_cov_scale: float = 1.0  # the detector's reported rock covariance is multiplied by this
     min_range_m: float = 0.3
     min_frame_interval_s: float = 0.95  # rock frames closer than this to the last used one are skipped
     # (only one observation per landmark and keyframe enters the graph, so more frames add little:
@@ -77,6 +80,10 @@ class LandmarkConfig:
         default_factory=lambda: ObservationBudget(max_observations=25, max_new=3))
     dense_view: int = 60
     max_retired: int = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
+
+    def __post_init__(self) -> None:
+        if not self.rock_cov_scale > 0:
+            raise SmootherError(f"landmarks.rock_cov_scale must be > 0, got {self.rock_cov_scale}")
 
 
 @dataclass(frozen=True)
@@ -120,3 +127,11 @@ class SmootherConfig:
     frozen_marginals: bool = False  # fixed-lag: marginal covariance of a keyframe as it leaves the
     # window (~1 ms each) instead of its causal covariance (an upper bound)
     snapshot_before_fixes: bool = True  # full mode: copy ISAM2 (~ms) before fix updates and retractions
+    # stereo calibration variable C(0) (rotation error, scale) with this prior, on every rock
+    # factor (then a Python factor, ~25 us per linearization instead of the C++ one); full mode only
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+
+    def __post_init__(self) -> None:
+        if self.calibration.enabled and self.fixed_lag_s > 0:
+            raise SmootherError("calibration needs the full smoother (fixed_lag_s = 0): the fixed-lag "
+                                "window would marginalise the calibration variable")

@@ -138,3 +138,53 @@ def make_point_factor(
     base = gtsam.noiseModel.Gaussian.Covariance(point_factor_covariance(z, cov_base))
     model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), base)
     return gtsam.BearingRangeFactor3D(pose_key, point_key, gtsam.Unit3(z), float(np.linalg.norm(z)), model)
+
+
+def calibrated_point_residual(
+    T_world_kf: np.ndarray, l_world: np.ndarray, c: np.ndarray, z_kf: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Residual (3,) ``h - z`` of a rock seen at ``z_kf`` (3,) in the keyframe's base_link, with
+    ``h = (1 + c[3]) Exp(c[:3]) R^T (l - t)`` (calibration ``c`` (4,): rotation error, scale - 1),
+    and its Jacobians w.r.t. the pose's right perturbation [omega, v] (3, 6), the point (3, 3)
+    and the calibration (3, 4)."""
+    R, t = T_world_kf[:3, :3], T_world_kf[:3, 3]
+    q = R.T @ (l_world - t)
+    w = c[:3]
+    th = float(np.linalg.norm(w))
+    K = skew(w)
+    K2 = K @ K
+    if th < 1e-6:
+        E, J_left = np.eye(3) + K + 0.5 * K2, np.eye(3) + 0.5 * K + K2 / 6.0
+    else:
+        E = np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K2
+        J_left = np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K2
+    sc = 1.0 + c[3]
+    y = E @ q
+    H_pose = np.empty((3, 6))
+    H_pose[:, :3] = sc * E @ skew(q)  # q(T Exp(xi)) ~ q + [q]x omega - v
+    H_pose[:, 3:] = -sc * E
+    H_c = np.empty((3, 4))
+    H_c[:, :3] = -sc * skew(y) @ J_left  # Exp(w + dw) = Exp(J_left(w) dw) Exp(w) to first order
+    H_c[:, 3] = y
+    return sc * y - z_kf, H_pose, sc * E @ R.T, H_c
+
+
+def make_calibrated_point_factor(
+    pose_key: int, point_key: int, calib_key: int, z_kf: np.ndarray, cov_kf: np.ndarray, huber_k: float
+) -> gtsam.CustomFactor:
+    """Rock seen at ``z_kf`` (3,) with covariance ``cov_kf`` (3, 3) from keyframe ``pose_key``,
+    through the stereo calibration ``calib_key`` (Vector4): a Cartesian CustomFactor under a
+    Huber kernel (see :func:`calibrated_point_residual`)."""
+    z = np.array(z_kf, dtype=float)
+    base = gtsam.noiseModel.Gaussian.Covariance(np.array(cov_kf, dtype=float))
+    model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), base)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        k = this.keys()
+        r, Hp, Hl, Hc = calibrated_point_residual(values.atPose3(k[0]).matrix(), values.atPoint3(k[1]),
+                                                  values.atVector(k[2]), z)
+        if H is not None:
+            H[0], H[1], H[2] = Hp, Hl, Hc
+        return r
+
+    return gtsam.CustomFactor(model, [pose_key, point_key, calib_key], error)

@@ -16,7 +16,7 @@ import time
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import C, L, X
 
 from fgslam.errors import SmootherError
 from fgslam.smoother.config import SmootherConfig
@@ -25,6 +25,7 @@ from fgslam.smoother.factors import (
     cov_gtsam_to_world,
     cov_world_to_gtsam,
     inverse,
+    make_calibrated_point_factor,
     make_point_factor,
     skew,
 )
@@ -91,6 +92,12 @@ class Isam2Smoother:
         values = gtsam.Values()
         values.insert(X(k), gtsam.Pose3(initial.T_world_base))
         self._stamps[X(k)] = initial.t
+        cal = self.cfg.calibration
+        self.calibrated = cal.enabled
+        if self.calibrated:  # C(0): rotation error (3) and scale - 1 of the rock measurements
+            sig = np.maximum(cal.prior_sigmas(), 1e-6)  # (a sigma of 0: held at 0 by a stiff prior)
+            graph.add(gtsam.PriorFactorVector(C(0), np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+            values.insert(C(0), np.zeros(4))
         self.solver.update(graph, values, {X(k): initial.t})
         self.acc = OdometryAccumulator(initial.t)
         self.segments: dict[int, OdometryAccumulator] = {k: self.acc}
@@ -122,7 +129,7 @@ class Isam2Smoother:
         T_rel, C_rel = self.acc.T_kf_now, self.acc.cov
         R_rel = T_rel[:3, :3]
         z = np.asarray(obs.xyz_base_m)
-        Rz = np.asarray(obs.cov_base_m2)
+        Rz = np.asarray(obs.cov_base_m2) * self.cfg.landmarks.rock_cov_scale
         # the observation moved onto the keyframe through the odometry since it
         z_kf = z @ R_rel.T + T_rel[:3, 3]
         J = np.zeros((n, 3, 6))
@@ -136,7 +143,7 @@ class Isam2Smoother:
             if lid in self._seen_on_kf:
                 continue
             self._seen_on_kf.add(lid)
-            self._buf_graph.add(make_point_factor(X(kf), L(lid), zk, Rk, self.cfg.landmarks.huber_k))
+            self._buf_graph.add(self._point_factor(kf, lid, zk, Rk))
             self._buf_lids.add(lid)
         for rec in fa.to_insert:
             rec.status = ACTIVE
@@ -144,9 +151,25 @@ class Isam2Smoother:
             self._buf_lids.add(rec.lid)
             self._seen_on_kf.add(rec.lid)
             for kf_i, zk, Rk in rec.pending:
-                self._buf_graph.add(make_point_factor(X(kf_i), L(rec.lid), zk, Rk, self.cfg.landmarks.huber_k))
+                self._buf_graph.add(self._point_factor(kf_i, rec.lid, zk, Rk))
             rec.pending = []
         return LandmarkUpdateReport(obs.t, n, fa.n_associated, fa.n_new, fa.n_rejected)
+
+    def _point_factor(self, kf: int, lid: int, z_kf: np.ndarray, R_kf: np.ndarray):
+        k = self.cfg.landmarks.huber_k
+        if self.calibrated:
+            return make_calibrated_point_factor(X(kf), L(lid), C(0), z_kf, R_kf, k)
+        return make_point_factor(X(kf), L(lid), z_kf, R_kf, k)
+
+    def calibration(self) -> dict:
+        """The estimated stereo calibration (empty without the calibration variable): rotation
+        vector (deg, base_link) and range scale, with their marginal sigmas."""
+        if not self.calibrated:
+            return {}
+        c = np.asarray(self.solver.isam.calculateEstimateVector(C(0)))
+        sig = np.sqrt(np.diag(self.solver.marginal_cov(C(0))))
+        return {"rotation_deg": np.degrees(c[:3]).round(4).tolist(), "scale": round(1.0 + float(c[3]), 6),
+                "rotation_sigma_deg": np.degrees(sig[:3]).round(4).tolist(), "scale_sigma": round(float(sig[3]), 6)}
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         """Place a (late) planar fix on the keyframe before ``t_meas``; gate, update, retract."""
@@ -232,6 +255,7 @@ class Isam2Smoother:
                 "n_budget_new_skipped": self.landmarks.n_budget_new_skipped,
                 "retracted_fixes": retracted,
                 "fixed_lag_s": self.cfg.fixed_lag_s,
+                **({"calibration": self.calibration()} if self.calibrated else {}),
             },
         )
 

@@ -36,6 +36,7 @@ def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Par
         th = gtsam.ISAM2ThresholdMap()
         th.insert(("x", np.full(6, cfg.relinearize_threshold)))
         th.insert(("l", np.full(3, cfg.relinearize_threshold * cfg.landmark_relinearize_scale)))
+        th.insert(("c", np.full(4, cfg.relinearize_threshold)))  # the stereo calibration, if any
         p.setRelinearizeThreshold(th)
     p.relinearizeSkip = cfg.relinearize_skip
     p.setFactorization("QR" if factorization is Factorization.QR else "CHOLESKY")
@@ -44,9 +45,17 @@ def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Par
     return p
 
 
+def _value(values: gtsam.Values, key: int):
+    """The value of ``key``: Pose3 (X), Vector (C, the calibration) or Point3 (L)."""
+    c = gtsam.Symbol(key).chr()
+    if c == ord("x"):
+        return values.atPose3(key)
+    return values.atVector(key) if c == ord("c") else values.atPoint3(key)
+
+
 def _value_finite(values: gtsam.Values, key: int) -> bool:
-    v = values.atPose3(key).matrix() if _is_pose(values, key) else values.atPoint3(key)
-    return bool(np.all(np.isfinite(v)))
+    v = _value(values, key)
+    return bool(np.all(np.isfinite(v.matrix() if isinstance(v, gtsam.Pose3) else v)))
 
 
 class Solver:
@@ -227,7 +236,7 @@ class Solver:
         theta = gtsam.Values()
         for k in old_theta.keys():  # noqa: SIM118 (gtsam.Values)
             if k not in new_keys or k in self._alive:
-                theta.insert(k, old_theta.atPose3(k) if _is_pose(old_theta, k) else old_theta.atPoint3(k))
+                theta.insert(k, _value(old_theta, k))
         stamps = {k: t for k, t in stamps.items() if theta.exists(k)}
         self._new_solver()
         if self.fixed_lag:
@@ -244,9 +253,5 @@ class Solver:
         return m
 
 
-def _is_pose(values: gtsam.Values, key: int) -> bool:
-    return gtsam.Symbol(key).chr() == ord("x")
-
-
 def _tangent_dim(key: int) -> int:
-    return 6 if gtsam.Symbol(key).chr() == ord("x") else 3
+    return {ord("x"): 6, ord("c"): 4}.get(gtsam.Symbol(key).chr(), 3)
