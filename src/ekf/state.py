@@ -5,7 +5,7 @@ dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
 :mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
 :class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
 holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
-(see :class:`ekf.config.CalibrationConfig`).
+(see :class:`reloc.calibration.CalibrationConfig`).
 """
 
 from __future__ import annotations

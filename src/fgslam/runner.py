@@ -110,7 +110,7 @@ def _stack(records: list) -> Trajectory:
     )
 
 
-FEED_LOOKAHEAD_S = 2.0  # a replay asks its fix feed this far ahead of its stream time
+FEED_LOOKAHEAD_S = 5.0  # a replay asks its fix feed this far ahead of its stream time (> fix latency)
 
 
 class FixFeed(Protocol):
@@ -190,7 +190,7 @@ def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: Run
                     heapq.heappush(marks, f.t_meas)
                 fed.append(f)
                 seq += 1
-            feed_t = t + FEED_LOOKAHEAD_S
+            feed_t = t
         while marks and marks[0] < t:  # every input up to the fix time has been processed
             mark = heapq.heappop(marks)
             w0 = time.perf_counter()
