@@ -232,3 +232,20 @@ def test_calibrated_point_factor_jacobians_match_numerical(rng):
     np.testing.assert_allclose(f.unwhitenedError(v), r, atol=1e-12)
     A, _ = f.linearize(v).jacobian()
     np.testing.assert_allclose(A, 10.0 * np.hstack([Hp, Hl, Hc]), atol=1e-9)  # whitened by 1/0.1
+
+
+def test_fix_yaw_sigma_floor_raises_only_the_yaw_and_keeps_correlations():
+    from fgslam.smoother.fixes import place_fix
+    from reloc.measurements import GlobalFix
+
+    cov = np.array([[0.04, 0.01, 0.0002], [0.01, 0.09, -0.0003], [0.0002, -0.0003, 0.003**2]])
+    fix = GlobalFix(1.0, 2.0, 3.0, 4.0, 0.3, cov)
+    T = np.eye(4)
+    _, plain = place_fix(fix, X(0), np.eye(4), np.zeros((6, 6)), T, 2.0)
+    _, floored = place_fix(fix, X(0), np.eye(4), np.zeros((6, 6)), T, 2.0, yaw_sigma_floor_rad=0.05)
+    np.testing.assert_allclose(plain, cov, atol=1e-12)  # no odometry in between: the fix's own
+    np.testing.assert_allclose(floored[:2, :2], cov[:2, :2], atol=1e-12)
+    assert floored[2, 2] == pytest.approx(0.05**2)
+    assert floored[0, 2] / np.sqrt(floored[0, 0] * floored[2, 2]) == pytest.approx(cov[0, 2] / np.sqrt(cov[0, 0] * cov[2, 2]))
+    _, above = place_fix(fix, X(0), np.eye(4), np.zeros((6, 6)), T, 2.0, yaw_sigma_floor_rad=0.001)
+    np.testing.assert_allclose(above, cov, atol=1e-12)  # a floor below the fix's sigma changes nothing

@@ -27,9 +27,10 @@ class FixRecord:
 
 
 def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarray,
-              T_world_kf: np.ndarray, cauchy_k: float):
+              T_world_kf: np.ndarray, cauchy_k: float, yaw_sigma_floor_rad: float = 0.0):
     """Factor and residual covariance (3, 3) for ``fix`` attached to keyframe ``key`` through the
-    odometry ``T_kf_meas`` (4, 4) with covariance ``cov_rel`` (6, 6, GTSAM body frame).
+    odometry ``T_kf_meas`` (4, 4) with covariance ``cov_rel`` (6, 6, GTSAM body frame); the fix's
+    yaw sigma is taken as at least ``yaw_sigma_floor_rad``.
 
     The odometry part of the covariance is projected with the fix's own heading and the
     estimate's tilt only, so that the factor does not depend on when it arrives (a late fix and
@@ -41,7 +42,11 @@ def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarr
     Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([[ce, se, 0.0], [-se, ce, 0.0], [0.0, 0.0, 1.0]])
     T_proj = np.eye(4)
     T_proj[:3, :3] = Rz @ T[:3, :3]
-    cov = fix_covariance(T_proj, cov_rel, fix.cov_xyyaw)
+    cov_fix = np.array(fix.cov_xyyaw, dtype=float)
+    if cov_fix[2, 2] < yaw_sigma_floor_rad**2:  # raise the yaw sigma, keep the correlation coefficients
+        D = np.diag([1.0, 1.0, yaw_sigma_floor_rad / np.sqrt(cov_fix[2, 2])])
+        cov_fix = D @ cov_fix @ D
+    cov = fix_covariance(T_proj, cov_rel, cov_fix)
     return make_fix_factor(key, T_kf_meas, fix.xyyaw, cov, cauchy_k), cov
 
 

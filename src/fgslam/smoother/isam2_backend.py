@@ -368,7 +368,8 @@ class Isam2Smoother:
             return FixOutcome(fix, False, f"older than the smoother window ({self.cfg.fixed_lag_s:.0f} s)")
         T_rel, C_rel = seg.at(fix.t_meas)
         T_kf = self.solver.pose(X(k))
-        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k)
+        yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
+        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor)
         if cfg.gate_smoothed_marginal:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
