@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from reloc.backend import PoseEstimate, Trajectory
+from reloc.backend import PoseEstimate, Trajectory, known_start_cov
 from reloc.measurements import (
     CmdVel,
     GroundTruthPose,
@@ -32,7 +32,7 @@ from sim.world import IMPORTED_MEAN_SPEED_MPS, IMPORTED_TRAVERSE_M, World, build
 
 log = logging.getLogger(__name__)
 
-INITIAL_POSE_COV = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])  # m^2 and rad^2
+INITIAL_POSE_COV = known_start_cov()  # m^2 and rad^2: as for a bag's start pose (a run in memory and its bag agree)
 
 
 @dataclass

@@ -12,14 +12,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fgslam.errors import InputFileError
-from reloc.backend import PoseEstimate, Trajectory
+from reloc.backend import PoseEstimate, Trajectory, known_start_cov
 from reloc.measurements import GroundTruthPose, RockCatalog
 
 log = logging.getLogger(__name__)
-
-# Start-pose uncertainty when the start pose is known (the rover's landing site in the map).
-START_SIGMA_POS_M = 0.01
-START_SIGMA_ROT_RAD = 0.002
 
 
 @dataclass
@@ -43,8 +39,7 @@ def start_pose_from_truth(gt: GroundTruthPose) -> PoseEstimate:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(gt.quat_xyzw).as_matrix()
     T[:3, 3] = gt.position_m
-    cov = np.diag([START_SIGMA_POS_M**2] * 3 + [START_SIGMA_ROT_RAD**2] * 3)
-    return PoseEstimate(gt.t, T, cov)
+    return PoseEstimate(gt.t, T, known_start_cov())
 
 
 def start_pose_from_xyyaw(t: float, x: float, y: float, yaw: float, z: float = 0.0) -> PoseEstimate:
@@ -52,8 +47,7 @@ def start_pose_from_xyyaw(t: float, x: float, y: float, yaw: float, z: float = 0
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
     T[:3, 3] = [x, y, z]
-    cov = np.diag([START_SIGMA_POS_M**2] * 3 + [START_SIGMA_ROT_RAD**2] * 3)
-    return PoseEstimate(float(t), T, cov)
+    return PoseEstimate(float(t), T, known_start_cov())
 
 
 def _initial_from_stream(measurements: list, where: str) -> PoseEstimate:

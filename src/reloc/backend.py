@@ -20,6 +20,16 @@ import numpy as np
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep
 
+# Uncertainty of a known start pose (the rover's landing site in the map), the same wherever a
+# run starts from: a bag's first ground-truth message, --start, or a simulator run in memory.
+KNOWN_START_SIGMA_POS_M = 0.01
+KNOWN_START_SIGMA_ROT_RAD = 0.002
+
+
+def known_start_cov() -> np.ndarray:
+    """(6, 6) covariance over ``[dp_world, dtheta_world]`` of a known start pose."""
+    return np.diag([KNOWN_START_SIGMA_POS_M**2] * 3 + [KNOWN_START_SIGMA_ROT_RAD**2] * 3)
+
 
 @dataclass(frozen=True)
 class PoseEstimate:
@@ -57,7 +67,7 @@ class LandmarkMap:
         return int(self.ids.shape[0])
 
     @staticmethod
-    def empty() -> "LandmarkMap":
+    def empty() -> LandmarkMap:
         return LandmarkMap(
             ids=np.zeros(0, dtype=int),
             xyz_world_m=np.zeros((0, 3)),
