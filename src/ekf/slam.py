@@ -30,6 +30,7 @@ from reloc.backend import (
     PoseEstimate,
     Trajectory,
 )
+from reloc.calibration import calibration_report
 from reloc.landmark_book import LandmarkBook
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep
@@ -183,8 +184,7 @@ class EkfSlam:
         if not s.calibrated:
             return {}
         sig = np.sqrt(np.diag(s.P)[POSE_DIM:POSE_DIM + CALIB_DIM])
-        return {"rotation_deg": np.degrees(log_so3(s.calib_R)).round(4).tolist(), "scale": round(s.calib_s, 6),
-                "rotation_sigma_deg": np.degrees(sig[:3]).round(4).tolist(), "scale_sigma": round(float(sig[3]), 6)}
+        return calibration_report(log_so3(s.calib_R), s.calib_s, sig[:3], sig[3])
 
     @property
     def state_vector_size(self) -> int:

@@ -13,11 +13,12 @@ from reloc.errors import ConfigError
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """Stereo calibration states (off when both sigmas are 0). The camera's mounting rotation and
+    """Stereo calibration states (off when every sigma is 0). The camera's mounting rotation and
     its range scale are known only to these sigmas (a rotation vector per axis, deg; a relative
-    scale). A sigma of 0 keeps that term at its nominal value. When on, a back-end estimates the rotation error ``E`` and scale ``s`` of the rock
-    measurements in base_link, ``z = s E q`` for the true point ``q`` (about the base origin: the
-    camera's 0.9 m lever arm changes a 0.15 deg rotation's effect by ~2 mm)."""
+    scale); a sigma of 0 keeps that term at its nominal value. When on, a back-end estimates the
+    rotation error ``E`` and scale ``s`` of the rock measurements in base_link, ``z = s E q`` for
+    the true point ``q`` (about the base origin: the camera's 0.9 m lever arm changes a 0.15 deg
+    rotation's effect by ~2 mm)."""
 
     roll_pitch_sigma_deg: float = 0.0  # about base_link x and y
     yaw_sigma_deg: float = 0.0  # about base_link z
@@ -36,3 +37,12 @@ class CalibrationConfig:
         bad = {k: v for k, v in vars(self).items() if not (math.isfinite(v) and v >= 0)}
         if bad:
             raise ConfigError(f"calibration sigmas must be finite and >= 0, got {bad}")
+
+
+def calibration_report(rotvec_rad: np.ndarray, scale: float, rot_sigma_rad: np.ndarray, scale_sigma: float) -> dict:
+    """JSON-ready estimate of a calibration, as both back-ends report it: rotation vector of ``E``
+    (deg, base_link), range scale, and their sigmas."""
+    return {"rotation_deg": np.degrees(np.asarray(rotvec_rad, dtype=float)).round(4).tolist(),
+            "scale": round(float(scale), 6),
+            "rotation_sigma_deg": np.degrees(np.asarray(rot_sigma_rad, dtype=float)).round(4).tolist(),
+            "scale_sigma": round(float(scale_sigma), 6)}

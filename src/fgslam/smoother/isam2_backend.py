@@ -42,6 +42,7 @@ from reloc.backend import (
     PoseEstimate,
     Trajectory,
 )
+from reloc.calibration import calibration_report
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep
 
@@ -168,8 +169,7 @@ class Isam2Smoother:
             return {}
         c = np.asarray(self.solver.isam.calculateEstimateVector(C(0)))
         sig = np.sqrt(np.diag(self.solver.marginal_cov(C(0))))
-        return {"rotation_deg": np.degrees(c[:3]).round(4).tolist(), "scale": round(1.0 + float(c[3]), 6),
-                "rotation_sigma_deg": np.degrees(sig[:3]).round(4).tolist(), "scale_sigma": round(float(sig[3]), 6)}
+        return calibration_report(c[:3], 1.0 + float(c[3]), sig[:3], sig[3])
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         """Place a (late) planar fix on the keyframe before ``t_meas``; gate, update, retract."""
