@@ -81,6 +81,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         np.array([f.t_meas for f in fixes]), np.array([f.t_recv for f in fixes]), acc, gt, res.duration_s,
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
+    out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
     if res.stats.extra.get("calibration"):  # the back-end's estimated stereo calibration
         out["calibration"] = res.stats.extra["calibration"]

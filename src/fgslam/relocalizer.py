@@ -74,6 +74,9 @@ class RelocalizerConfig:
     correlation_window_s: float = 60.0
     prior_sigmas: float | None = 6.0
     prior_min_radius_m: float = 3.0
+    # Tracking: with a prior, first verify the pose the estimate gives (the map as it is, in the
+    # estimate's world frame) and search only if that does not convince (reloc.matcher module doc)
+    track: bool = True
     # With a prior, match against the catalog rocks that can hold the map (within prior radius +
     # the map's extent + crop_margin_m of where the estimate puts it): a small index built per
     # attempt (a few ms) instead of hypotheses over the whole catalog. False: whole catalog.
@@ -108,7 +111,8 @@ class RelocalizerConfig:
 class FixAttempt:
     """One matching attempt at ``t_meas``: ``status`` is "fix", "no match", "too few landmarks" or
     "bad scale"; ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
-    (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time."""
+    (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time;
+    ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``)."""
 
     t_meas: float
     n_landmarks: int
@@ -118,6 +122,7 @@ class FixAttempt:
     local_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     world_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     est_xyyaw: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tracked: bool = False
 
 
 def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig) -> np.ndarray:
@@ -242,9 +247,11 @@ class Relocalizer:
         prior = None
         if cfg.prior_sigmas is not None:
             from reloc.matcher import MatchPrior
+            from reloc.procrustes import Similarity2D
 
             sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
-            prior = MatchPrior(local_xy.mean(axis=0), cfg.prior_min_radius_m + cfg.prior_sigmas * sigma_pos)
+            guess = Similarity2D(0.0, np.zeros(2), 1.0) if cfg.track else None
+            prior = MatchPrior(local_xy.mean(axis=0), cfg.prior_min_radius_m + cfg.prior_sigmas * sigma_pos, guess)
         rows = None  # catalog rows of the matcher's catalog (None: the whole catalog)
         if prior is None:
             result = self.matcher.match(local_xy, lmap.size_m[idx])
@@ -277,7 +284,7 @@ class Relocalizer:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
         self._fix_times.append(est.t)
         np.add.at(self._rock_uses, np.unique(pairs[:, 1]), 1)
-        return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw)
+        return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
 
     def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
         """Match against the catalog rocks that can hold the map under ``prior``; returns the

@@ -57,7 +57,8 @@ class MatchResult:
     ``chance_probability``: probability that a random pose puts one local rock on a catalog rock;
     ``log10_false_alarm``: log10 of (binomial tail of the inlier count x hypotheses tried), the
     acceptance statistic (more negative = more convincing); ``similarity_cov`` (4, 4) over
-    (tx_m, ty_m, theta_rad, scale).
+    (tx_m, ty_m, theta_rad, scale); ``from_guess``: the pose came from verifying the prior's
+    guess (tracking), not from the triangle search.
     """
 
     rotation_rad: float
@@ -71,6 +72,7 @@ class MatchResult:
     chance_probability: float
     log10_false_alarm: float
     similarity_cov: np.ndarray
+    from_guess: bool = False
 
     @property
     def n_inliers(self) -> int:

@@ -14,6 +14,13 @@ The composer reads like the reference design (section II.B), with the fixes the 
    local density (Poisson-binomial tail x number of hypotheses generated, with a
    sequential-testing weight), checked after every batch, so the search stops at the first
    convincing pose.
+
+Tracking: when the caller knows roughly where the map is (:class:`MatchPrior` with a ``guess``,
+e.g. the back-end's own estimate), that pose is verified first, as one hypothesis with its own
+share of the sequential test (``guess_share``); only if it does not convince does the triangle
+search run (with the rest of the share, and paying for the guess's test). A localized rover then
+costs one verification per attempt instead of a search, and a wrong or drifted guess costs one
+verification more than the search alone.
 """
 
 from __future__ import annotations
@@ -78,6 +85,8 @@ class MatcherConfig:
     are tried, and ``fewest_candidates_first`` tries first those with the fewest expected
     hypotheses times (neighbour rank)^``rank_power`` (stable, so the seed breaks ties).
     ``max_triangles``: try at most this many local triangles (None: all).
+    ``guess_share``: share of the false-alarm budget given to verifying a prior's ``guess``
+    before the search (the search's stages share the rest); unused without a guess.
     """
 
     sigma_m: float = 0.1
@@ -105,6 +114,7 @@ class MatcherConfig:
     metric: bool = True
     fewest_candidates_first: bool = True
     rank_power: float = 3.0
+    guess_share: float = 0.25
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -114,6 +124,8 @@ class MatcherConfig:
             raise MatchInputError(f"MatcherConfig.size_ratio_max must be > 1, got {self.size_ratio_max}")
         if self.local_neighbours < 2 or self.batch_triangles < 1 or self.verify_per_batch < 1:
             raise MatchInputError(f"MatcherConfig counts out of range: {self}")
+        if not 0.0 < self.guess_share < 1.0:
+            raise MatchInputError(f"MatcherConfig.guess_share must be in (0, 1), got {self.guess_share}")
 
     @property
     def inlier_radius_m(self) -> float:
@@ -127,10 +139,12 @@ class MatcherConfig:
 @dataclass(frozen=True, slots=True)
 class MatchPrior:
     """Optional search restriction: the local map's centroid lies within ``radius_m`` of
-    ``center_xy`` (2,) in the world frame."""
+    ``center_xy`` (2,) in the world frame. ``guess``: the pose (local -> world) the caller
+    expects, verified before any search (tracking; see the module doc)."""
 
     center_xy: np.ndarray
     radius_m: float
+    guess: Similarity2D | None = None
 
 
 @dataclass
@@ -150,6 +164,7 @@ class _Search:
     verified_best: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
     verified_votes: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
     best: tuple[Similarity2D, Inliers] | None = None
+    best_from_guess: bool = False
     size_check: tuple[np.ndarray, np.ndarray, float] | None = None
     size_fraction: float = 1.0
     done: bool = False
@@ -223,7 +238,13 @@ class ConstellationMatcher:
                 stages.append((order[start : start + size], tol_m, inner_m))
                 start, size = start + size, min(2 * size, cfg.max_batch_triangles)
         weights = _stage_weights([sum(1 for s_ in stages if s_[2] is inner) for _, inner in passes])
+        guess = None if prior is None else prior.guess
+        if guess is not None:
+            weights = [w * (1.0 - cfg.guess_share) for w in weights]
+            self._verify_guess(xy, guess, st)
         for s_idx, (sel, tol_m, inner_m) in enumerate(stages):
+            if st.done:
+                break
             if inner_m is not None and st.n_hypotheses >= cfg.wide_max_hypotheses:
                 break  # the wider pass only while the search is still cheap
             batch = tri.take(sel)
@@ -271,6 +292,7 @@ class ConstellationMatcher:
             inlier_pairs=np.stack([inl.local_idx, inl.catalog_idx], axis=1).astype(np.int64),
             rmse_m=inl.rmse_m,
             n_local=int(xy.shape[0]),
+            from_guess=st.best_from_guess,
             n_hypotheses=st.n_hypotheses,
             n_verified=st.n_verified,
             chance_probability=p,
@@ -367,13 +389,31 @@ class ConstellationMatcher:
                 continue
             sim, inl = found
             if st.best is None or (inl.count, -inl.rmse_m) > (st.best[1].count, -st.best[1].rmse_m):
-                st.best = (sim, inl)
+                st.best, st.best_from_guess = (sim, inl), False
                 # a convincing pose ends the search at once: the test at this stage's weight
                 # and hypothesis count does not depend on how many bins were verified before
                 stop = min(cfg.early_exit_log10, cfg.max_log10_false_alarm)
                 if inl.count >= cfg.min_inliers and self._log10_fa(st, xy)[0] <= stop:
                     st.done = True
                     return
+
+    def _verify_guess(self, xy: np.ndarray, guess: Similarity2D, st: _Search) -> None:
+        """Verify the prior's guess as the first stage (one hypothesis, one verification, the
+        ``guess_share`` of the test); ends the search when it convinces. No guided growth: the
+        guess is as good over the whole map as at any point of it, and growing from one anchor
+        ties the fit to that part of the map (my2020, fixes' p90 error 0.090 m with growth from
+        the centroid, 0.082 without; the triangle search: 0.084)."""
+        cfg = self.config
+        st.stage += 1
+        st.log10_weight = math.log10(cfg.guess_share)
+        st.n_hypotheses += 1
+        st.n_verified += 1
+        found = self._verify_one(xy, guess, None, st)
+        if found is None:
+            return
+        st.best, st.best_from_guess = found, True
+        if found[1].count >= cfg.min_inliers and self._log10_fa(st, xy)[0] <= cfg.max_log10_false_alarm:
+            st.done = True
 
     def _score(self, sim: Similarity2D, xy: np.ndarray, sel: np.ndarray | None, radius_m: float, st: _Search) -> Inliers:
         """Inliers of local rocks ``sel`` (all when None) under ``sim``, indices into ``xy``."""
@@ -387,19 +427,20 @@ class ConstellationMatcher:
         return umeyama_2d(xy[inl.local_idx], self.catalog.xy[inl.catalog_idx], with_scale=not self.config.metric)
 
     def _verify_one(
-        self, xy: np.ndarray, sim: Similarity2D, anchor_xy: np.ndarray, st: _Search
+        self, xy: np.ndarray, sim: Similarity2D, anchor_xy: np.ndarray | None, st: _Search
     ) -> tuple[Similarity2D, Inliers] | None:
-        """Two-stage scoring of one hypothesis (guided growth, first stage, re-fits, polish);
-        returns the re-fitted pose and its inliers, or None."""
+        """Two-stage scoring of one hypothesis (guided growth around ``anchor_xy``, skipped when
+        None; first stage, re-fits, polish); returns the re-fitted pose and its inliers, or None."""
         cfg = self.config
         r = cfg.inlier_radius_m
         # guided growth: a 3-point pose is accurate near its triangle only, so first collect
         # inliers close to it, re-fit, and widen the reach
-        reach = np.hypot(*(xy - anchor_xy).T)
-        for reach_m in cfg.growth_reach_m:
-            inl = self._score(sim, xy, np.flatnonzero(reach <= reach_m), cfg.first_stage_factor * r, st)
-            if inl.count >= 3:
-                sim = self._fit(xy, inl)
+        if anchor_xy is not None:
+            reach = np.hypot(*(xy - anchor_xy).T)
+            for reach_m in cfg.growth_reach_m:
+                inl = self._score(sim, xy, np.flatnonzero(reach <= reach_m), cfg.first_stage_factor * r, st)
+                if inl.count >= 3:
+                    sim = self._fit(xy, inl)
         # first stage with a wider radius: the pose is still noisier than the final one
         inl = self._score(sim, xy, None, cfg.first_stage_factor * r, st)
         if inl.count < max(3, cfg.min_inliers - 1):

@@ -317,3 +317,30 @@ def test_a_rolling_back_backend_hears_of_each_fix_before_the_stream_passes_it(st
     # same fixes, same result, and only the inputs after each t_meas replayed
     np.testing.assert_allclose(runs["list"][0].final.T_world_base, runs["feed"][0].final.T_world_base, atol=1e-12)
     assert runs["list"][1] == runs["feed"][1]
+
+
+def test_tracking_verifies_the_estimate_and_searches_when_it_is_off(stream):
+    """With ``track`` the estimate's own pose is verified first: the same fix as the search where
+    the estimate is good; an estimate 1.5 m and 8 deg off is not tracked but still found."""
+    import dataclasses
+
+    be = make_backend("dr", stream.initial)
+    run_backend(be, stream.measurements[: len(stream.measurements) // 2])
+    lmap, est = be.landmark_map(), be.estimate()
+    cfg = RelocalizerConfig(min_landmarks=5)
+    out = {tr: Relocalizer(stream.catalog, dataclasses.replace(cfg, track=tr)).attempt(lmap, est) for tr in (True, False)}
+    assert out[True].status == out[False].status == "fix"
+    assert out[True].tracked and not out[False].tracked
+    assert np.allclose(out[True].fix.xyyaw, out[False].fix.xyyaw, atol=0.05)
+    # move the snapshot (map and estimate together) by a rigid 2D error the search must undo
+    yaw = np.radians(8.0)
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+    off = np.array([1.5, 0.0, 0.0])
+    moved = LandmarkMap(lmap.ids, lmap.xyz_world_m @ R.T + off, lmap.cov_world_m2, lmap.size_m, lmap.n_obs)
+    T = est.T_world_base.copy()
+    T[:3, :3], T[:3, 3] = R @ T[:3, :3], R @ T[:3, 3] + off
+    drifted = PoseEstimate(est.t, T, np.eye(6) * 1.0)
+    att = Relocalizer(stream.catalog, cfg).attempt(moved, drifted)
+    assert att.status == "fix" and not att.tracked
+    assert np.allclose(att.fix.xyyaw[:2], out[False].fix.xyyaw[:2], atol=0.1)
+    assert abs(M.wrap_angle(att.fix.xyyaw[2] - out[False].fix.xyyaw[2])) < np.radians(1.0)

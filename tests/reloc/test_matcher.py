@@ -263,3 +263,57 @@ def test_stage_weights_sum_to_at_most_one():
         assert len(w) == sum(passes) and all(x > 0 for x in w) and sum(w) <= 1.0 + 1e-12
     w = _stage_weights([5])
     assert w[:4] == [0.25, 0.125, 0.0625, 0.03125] and w[-1] >= 0.5  # one pass: as before
+
+
+def _truth_sim(theta, t):
+    from reloc.procrustes import Similarity2D
+
+    return Similarity2D(float(theta), np.asarray(t, float), 1.0)
+
+
+def test_a_good_guess_is_verified_without_a_search(catalog):
+    from reloc.procrustes import Similarity2D
+    from reloc.scoring import log10_binomial_tail
+
+    rng = np.random.default_rng(19)
+    cfg = MatcherConfig(sigma_m=0.05)
+    matcher = ConstellationMatcher(catalog, cfg)
+    for _ in range(4):
+        local, size, theta, t, _ = _query(catalog.xy, catalog.size, rng)
+        searched = matcher.match(local, size)
+        truth = _truth_sim(theta, t)
+        center_w = truth.apply(local.mean(axis=0)[None])[0]
+        # the guess is off by 0.15 m and 0.3 deg, as a localized rover's estimate would be
+        guess = Similarity2D(theta + np.radians(0.3), t + np.array([0.1, -0.11]), 1.0)
+        res = matcher.match(local, size, prior=MatchPrior(center_w, 3.0, guess))
+        assert res is not None and res.from_guess and not searched.from_guess
+        assert res.n_hypotheses == 1 and res.n_verified == 1
+        _check(res, local, theta, t, pos_tol=0.05, head_tol_deg=0.3)
+        assert res.n_inliers >= searched.n_inliers - 2
+        # the guess's test: its share of the budget, the poses its re-fits can reach
+        tail = log10_binomial_tail(res.n_inliers - 3, local.shape[0] - 3, res.chance_probability)
+        assert res.log10_false_alarm >= tail + np.log10(2.0) - np.log10(cfg.guess_share) - 1e-9
+
+
+def test_a_wrong_guess_falls_back_to_the_search(catalog):
+    from reloc.procrustes import Similarity2D
+
+    rng = np.random.default_rng(20)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05))
+    local, size, theta, t, _ = _query(catalog.xy, catalog.size, rng)
+    center_w = _truth_sim(theta, t).apply(local.mean(axis=0)[None])[0]
+    # 2 m and 20 deg off: nothing near it, the triangle search (inside the prior) finds the pose
+    wrong = Similarity2D(theta + np.radians(20.0), t + np.array([2.0, 0.0]), 1.0)
+    res = matcher.match(local, size, prior=MatchPrior(center_w, 4.0, wrong))
+    assert res is not None and not res.from_guess and res.n_hypotheses > 1
+    _check(res, local, theta, t)
+    # a map that is not in the catalog is not matched, with or without a guess
+    other_xy, other_size = _field(3000, 97)
+    local, size, *_ = _query(other_xy, other_size, rng)
+    guess = Similarity2D(0.0, np.zeros(2), 1.0)
+    assert matcher.match(local, size, prior=MatchPrior(local.mean(axis=0), 4.0, guess)) is None
+
+
+def test_guess_share_is_checked():
+    with pytest.raises(MatchInputError, match="guess_share"):
+        MatcherConfig(guess_share=1.0)
