@@ -303,3 +303,18 @@ def test_calibration_variable_recovers_a_yaw_and_scale_error():
     assert ate_m(run, ta.t, ta.T_world_base) < ate_m(run, tp.t, tp.T_world_base)
     with pytest.raises(SmootherError, match="full smoother"):
         SmootherConfig(calibration=cal, fixed_lag_s=30.0)
+
+
+def test_after_a_late_fix_the_cached_newest_marginal_is_exact(short_run):
+    """A fix update puts the two newest keyframes last in the elimination: the cached marginal of
+    the newest one equals the batch marginal (to 2 %: iSAM2 linearizes where it last relinearized,
+    the batch at the current estimate) and the joint marginal of the two."""
+    sm = Isam2Smoother(short_run.initial_pose)
+    drive(sm, [m for m in short_run.measurements if m.t < 40.0], [])
+    k = len(sm.kfs) - 1
+    out = sm.apply_fix(_fix_at(short_run, sm.kfs.t[k - 2] + 0.1, sm.kfs.t[k], offset_xy=(0.05, 0.0)))
+    assert out.accepted
+    batch = sm.solver.marginal_covs([X(k)])[0]
+    assert np.allclose(sm.cov_kf, batch, rtol=0.02, atol=0.02 * np.sqrt(np.outer(np.diag(batch), np.diag(batch))).max())
+    joint = sm.solver.isam.jointMarginalCovariance([X(k - 1), X(k)])
+    assert np.allclose(joint.at(X(k), X(k)), sm.cov_kf, rtol=1e-6, atol=1e-12)

@@ -262,8 +262,12 @@ class Isam2Smoother:
     # ------------------------------------------------------------------ internals
     def _timed_update(self, graph, values, stamps=None, remove=None, keep_latest_root=False) -> list[int]:
         self._solver_touched = True
-        last = X(len(self.kfs) - 1) if keep_latest_root else None
-        return self.solver.update(graph, values, stamps, remove, last_key=last)
+        return self.solver.update(graph, values, stamps, remove, self._latest_keys() if keep_latest_root else ())
+
+    def _latest_keys(self) -> tuple[int, ...]:
+        """The two newest keyframes, to be eliminated last (see :meth:`Solver.update`)."""
+        k = len(self.kfs) - 1
+        return (X(k - 1), X(k)) if k > 0 else (X(k),)
 
     def _add_keyframe(self) -> None:
         """New keyframe X(k) at the accumulator's time: odometry, gravity and buffered rock factors."""
@@ -385,7 +389,7 @@ class Isam2Smoother:
         graph.add(factor)
         try:
             idx = self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
-            self.solver.extra_iterations(cfg.extra_iterations, last_key=X(len(self.kfs) - 1))
+            self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
         except (SolverUpdateError, RuntimeError, ValueError) as exc:
             self.solver.restore(snap, alive)
             self.n_failed_updates += 1
@@ -412,7 +416,7 @@ class Isam2Smoother:
             rec = live[worst]
             try:
                 self._timed_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), remove=[rec.factor_index], keep_latest_root=True)
-                self.solver.extra_iterations(cfg.extra_iterations, last_key=X(len(self.kfs) - 1))
+                self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
             except (SolverUpdateError, RuntimeError, ValueError) as exc:
                 log.warning("could not retract fix at t=%.2f: %s", rec.fix.t_meas, exc)
                 return
