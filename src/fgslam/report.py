@@ -59,7 +59,6 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
         fx = lambda s: s["runs"][ref]["fixes"]
         row("Fix attempts", lambda s: fx(s)["attempts"], "{:d}")
         row("Fixes", lambda s: fx(s)["fixes"], "{:d}")
-        row("Fixes by tracking [%]", lambda s: 100 * fx(s).get("tracked", 0) / max(fx(s)["fixes"], 1), "{:.1f}")
         row("Fix rate [Hz]", lambda s: fx(s)["rate_hz"], "{:.3f}")
         row("Fix position error median [m]", lambda s: fx(s)["position_error_m"]["median"])
         row("Fix position error mean [m]", lambda s: fx(s)["position_error_m"]["mean"])

@@ -340,7 +340,7 @@ def test_tracking_verifies_the_estimate_and_searches_when_it_is_off(stream):
     T = est.T_world_base.copy()
     T[:3, :3], T[:3, 3] = R @ T[:3, :3], R @ T[:3, 3] + off
     drifted = PoseEstimate(est.t, T, np.eye(6) * 1.0)
-    att = Relocalizer(stream.catalog, cfg).attempt(moved, drifted)
+    att = Relocalizer(stream.catalog, dataclasses.replace(cfg, track=True)).attempt(moved, drifted)
     assert att.status == "fix" and not att.tracked
     assert np.allclose(att.fix.xyyaw[:2], out[False].fix.xyyaw[:2], atol=0.1)
     assert abs(M.wrap_angle(att.fix.xyyaw[2] - out[False].fix.xyyaw[2])) < np.radians(1.0)

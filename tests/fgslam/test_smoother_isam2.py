@@ -318,3 +318,19 @@ def test_after_a_late_fix_the_cached_newest_marginal_is_exact(short_run):
     assert np.allclose(sm.cov_kf, batch, rtol=0.02, atol=0.02 * np.sqrt(np.outer(np.diag(batch), np.diag(batch))).max())
     joint = sm.solver.isam.jointMarginalCovariance([X(k - 1), X(k)])
     assert np.allclose(joint.at(X(k), X(k)), sm.cov_kf, rtol=1e-6, atol=1e-12)
+
+
+def test_fixes_on_the_newest_and_older_keyframes_all_update(short_run):
+    """Fixes on the newest keyframe (only the root re-eliminated) and on older ones, one after
+    the other: every one is applied (none fails in the solver's ordering)."""
+    sm = Isam2Smoother(short_run.initial_pose)
+    ms = short_run.measurements
+    t_prev = -np.inf
+    for t_end in (12.0, 20.0, 28.0, 36.0, 44.0, 52.0):
+        drive(sm, [m for m in ms if t_prev <= m.t < t_end], [])
+        t_prev = t_end
+        k = len(sm.kfs) - 1
+        for t_meas in (sm.acc.t_now, sm.kfs.t[k] + 0.05, sm.kfs.t[max(k - 3, 0)] + 0.05):
+            out = sm.apply_fix(_fix_at(short_run, t_meas, sm.acc.t_now, sigma_m=0.2))
+            assert out.accepted, out.reason
+    assert sm.stats().extra["n_failed_updates"] == 0

@@ -163,13 +163,13 @@ class Solver:
         """One iSAM2 update; returns the indices of the new factors. Raises SolverUpdateError after
         restoring the solver when the update fails (the batch is then not applied).
 
-        ``last_keys`` (full mode) are eliminated last, in this order, so that the last one stays
-        in a small root clique of the Bayes tree: its marginal is then read from the root instead
-        of computed through a shortcut (5-40 ms; after a late fix iSAM2 would otherwise put the
-        fix's old keyframe last). The newest keyframe alone at the end made a root clique of it and
-        the rocks around it (my2020: 12 ms a marginal after a fix); the previous keyframe before
-        it, a root of the two poses (1.8 ms). The fixed-lag smoother orders keys by time itself
-        (newest last)."""
+        ``last_keys`` (full mode) are eliminated last (in any order among them), so that they
+        form a small root clique of the Bayes tree: a marginal of one of them is then read from
+        the root instead of computed through a shortcut (5-40 ms; after a late fix iSAM2 would
+        otherwise put the fix's old keyframe last). The newest keyframe alone at the end made a
+        root clique of it and the rocks around it (my2020: 12 ms a marginal after a fix); with the
+        previous keyframe, a root of the two poses (1.8 ms). The fixed-lag smoother orders keys
+        by time itself (newest last)."""
         remove = list(remove or [])
         self.validate(graph, values, remove)
         n_before = self.factors().size()
@@ -193,10 +193,13 @@ class Solver:
         p = gtsam.ISAM2UpdateParams()
         p.removeFactorIndices = remove
         if last_keys:
-            # CCOLAMD groups must be contiguous from 0: everything else stays in group 0
+            # CCOLAMD groups must be contiguous from 0: everything else stays in group 0, and the
+            # keys share group 1 (iSAM2 drops the keys it does not re-eliminate from the
+            # constraint, so a group 2 could be left without a group 1: "given ordering contains
+            # variables that are not involved in the factor graph")
             groups = gtsam.KeyGroupMap()
-            for g, key in enumerate(last_keys, start=1):
-                groups.insert2(key, g)
+            for key in last_keys:
+                groups.insert2(key, 1)
             p.constrainedKeys = groups
         return p
 
