@@ -197,6 +197,8 @@ class ConstellationMatcher:
         frame, or None when no pose is convincing. Raises :class:`MatchInputError` on bad input."""
         cfg = self.config
         xy, log_size = _validate(local_xy, local_size)
+        if prior is not None:
+            _validate_prior(prior)
         if xy.shape[0] < 3:
             log.info("match: %d local rocks, need at least 3", xy.shape[0])
             return None
@@ -550,6 +552,20 @@ def _validate(local_xy: np.ndarray, local_size: np.ndarray | None) -> tuple[np.n
     if not np.all(np.isfinite(size)) or np.any(size <= 0):
         raise MatchInputError("local_size must be finite and positive (rock diameters in metres)")
     return xy, np.log(size).astype(np.float32)
+
+
+def _validate_prior(prior: MatchPrior) -> None:
+    c = np.asarray(prior.center_xy, dtype=float)
+    if c.shape != (2,) or not np.all(np.isfinite(c)):
+        raise MatchInputError(f"prior center_xy must be 2 finite values, got {prior.center_xy!r}")
+    if not (math.isfinite(prior.radius_m) and prior.radius_m > 0):
+        raise MatchInputError(f"prior radius_m must be finite and > 0, got {prior.radius_m}")
+    g = prior.guess
+    if g is not None and not (
+        math.isfinite(g.theta_rad) and math.isfinite(g.scale) and g.scale > 0
+        and np.asarray(g.translation).shape == (2,) and np.all(np.isfinite(g.translation))
+    ):
+        raise MatchInputError(f"prior guess must be a finite similarity with scale > 0, got {g!r}")
 
 
 def _apply_prior(h: Hypotheses, center: np.ndarray, prior: MatchPrior) -> Hypotheses:

@@ -314,6 +314,19 @@ def test_a_wrong_guess_falls_back_to_the_search(catalog):
     assert matcher.match(local, size, prior=MatchPrior(local.mean(axis=0), 4.0, guess)) is None
 
 
-def test_guess_share_is_checked():
+def test_guess_share_and_bad_priors_are_checked(catalog):
+    from reloc.procrustes import Similarity2D
+
     with pytest.raises(MatchInputError, match="guess_share"):
         MatcherConfig(guess_share=1.0)
+    matcher = ConstellationMatcher(catalog, MatcherConfig(sigma_m=0.05))
+    local, size, *_ = _query(catalog.xy, catalog.size, np.random.default_rng(21))
+    c = local.mean(axis=0)
+    for prior, what in (
+        (MatchPrior(np.array([np.nan, 0.0]), 3.0), "center_xy"),
+        (MatchPrior(c, -1.0), "radius_m"),
+        (MatchPrior(c, 3.0, Similarity2D(np.nan, np.zeros(2), 1.0)), "guess"),
+        (MatchPrior(c, 3.0, Similarity2D(0.0, np.zeros(2), 0.0)), "guess"),
+    ):
+        with pytest.raises(MatchInputError, match=what):
+            matcher.match(local, size, prior=prior)
