@@ -25,24 +25,28 @@ def similarity_covariance(
     *,
     floor_sigma_m: float = 0.0,
     with_scale: bool = True,
+    weights: np.ndarray | None = None,
 ) -> np.ndarray:
     """(4, 4) covariance of (tx_m, ty_m, theta_rad, scale) of ``sim`` fitted to K >= 3 pairs
     ``local_xy`` (K, 2) -> ``world_xy`` (K, 2); per-axis residual sigma floored at ``floor_sigma_m``.
-    ``with_scale=False``: the scale was held at its value (rigid fit); its row/column are zero."""
+    ``with_scale=False``: the scale was held at its value (rigid fit); its row/column are zero.
+    ``weights`` (K,) in (0, 1]: a weighted fit, pair i with variance sigma^2 / w_i (sigma^2 from
+    the weighted residuals: sum w |r|^2 / (2 sum w - n_par), the noise of a pair of weight 1)."""
     p = np.asarray(local_xy, float)
     k = p.shape[0]
+    w = np.ones(k) if weights is None else np.asarray(weights, float).reshape(k)
     rot = rotation_2d(sim.theta_rad)
     drot = rot @ np.array([[0.0, -1.0], [1.0, 0.0]])
     res = sim.apply(p) - np.asarray(world_xy, float)
     n_par = 4 if with_scale else 3
-    dof = max(2 * k - n_par, 1)
-    sigma2 = max(float(np.sum(res * res)) / dof, floor_sigma_m**2)
+    dof = max(2 * float(np.sum(w)) - n_par, 1.0)
+    sigma2 = max(float(np.sum(w[:, None] * res * res)) / dof, floor_sigma_m**2)
     jac = np.zeros((k, 2, 4))
     jac[:, 0, 0] = 1.0
     jac[:, 1, 1] = 1.0
     jac[:, :, 2] = sim.scale * p @ drot.T
     jac[:, :, 3] = p @ rot.T
-    jtj = np.einsum("kia,kib->ab", jac[:, :, :n_par], jac[:, :, :n_par])
+    jtj = np.einsum("k,kia,kib->ab", w, jac[:, :, :n_par], jac[:, :, :n_par])
     cov = np.zeros((4, 4))
     cov[:n_par, :n_par] = sigma2 * np.linalg.inv(jtj)
     return cov
