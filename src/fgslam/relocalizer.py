@@ -212,20 +212,22 @@ def fix_from_similarity(
     )
 
 
-def rover_weighted_fit(local_xy: np.ndarray, world_xy: np.ndarray, rover_xy: np.ndarray, cfg: RelocalizerConfig):
-    """Rigid re-fit of matched pairs (K, 2) weighted by closeness to the rover
-    (``RelocalizerConfig.fit_radius_m``): (rotation_rad, translation (2,), scale 1, weighted RMSE
-    m, (4, 4) covariance over (tx, ty, theta, scale))."""
+def rover_weighted_fit(
+    local_xy: np.ndarray, world_xy: np.ndarray, rover_xy: np.ndarray, radius_m: float, floor_sigma_m: float
+):
+    """Rigid re-fit of matched pairs (K, 2) weighted by closeness to the rover, ``w = 1 / (1 +
+    (d / radius_m)^2)`` (``RelocalizerConfig.fit_radius_m``): (rotation_rad, translation (2,),
+    scale 1, weighted RMSE m, (4, 4) covariance over (tx, ty, theta, scale), residual sigma
+    floored at ``floor_sigma_m``)."""
     from reloc.match_result import similarity_covariance
     from reloc.procrustes import umeyama_2d
 
     d2 = np.sum((local_xy - np.asarray(rover_xy, float)) ** 2, axis=1)
-    w = 1.0 / (1.0 + d2 / cfg.fit_radius_m**2)
+    w = 1.0 / (1.0 + d2 / radius_m**2)
     sim = umeyama_2d(local_xy, world_xy, w, with_scale=False)
     res = sim.apply(local_xy) - world_xy
     rmse = float(np.sqrt(np.sum(w * np.sum(res * res, axis=1)) / np.sum(w)))
-    floor = 0.25 * float(dict(cfg.matcher).get("sigma_m", 0.1))
-    cov = similarity_covariance(sim, local_xy, world_xy, floor_sigma_m=floor, with_scale=False, weights=w)
+    cov = similarity_covariance(sim, local_xy, world_xy, floor_sigma_m=floor_sigma_m, with_scale=False, weights=w)
     return float(sim.theta_rad), np.asarray(sim.translation, float), 1.0, rmse, cov
 
 
@@ -249,6 +251,8 @@ class Relocalizer:
             self.build_time_s = 0.0
             self._mcfg = None  # a given matcher is used as it is (no crops)
         self.matcher = matcher
+        mc = getattr(matcher, "config", None)  # a given matcher may not have a MatcherConfig
+        self._fit_floor_sigma_m = float(getattr(mc, "fit_floor_sigma_m", 0.0))
         self._fix_times: list[float] = []
         self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
@@ -305,7 +309,8 @@ class Relocalizer:
         rotation, translation, scale = float(result.rotation_rad), np.asarray(result.translation), float(result.scale)
         rmse, sim_cov = float(result.rmse_m), getattr(result, "similarity_cov", None)
         if cfg.fit_radius_m is not None:
-            rotation, translation, scale, rmse, sim_cov = rover_weighted_fit(L, W, est.position_m[:2], cfg)
+            rotation, translation, scale, rmse, sim_cov = rover_weighted_fit(
+                L, W, est.position_m[:2], cfg.fit_radius_m, self._fit_floor_sigma_m)
         cov_lm = lmap.cov_world_m2[idx[pairs[:, 0]]]
         map_var = float(np.mean(0.5 * (cov_lm[:, 0, 0] + cov_lm[:, 1, 1]))) if len(cov_lm) else 0.0
         try:

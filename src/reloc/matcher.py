@@ -132,6 +132,12 @@ class MatcherConfig:
         return max(self.inlier_sigmas * self.sigma_m, self.min_inlier_radius_m)
 
     @property
+    def fit_floor_sigma_m(self) -> float:
+        """Floor of the per-axis residual sigma in a fit's covariance (a fit on a few exact pairs
+        is not that exact)."""
+        return 0.25 * self.sigma_m
+
+    @property
     def side_tol_m(self) -> float:
         return self.side_tol_sigmas * math.sqrt(2.0) * self.sigma_m
 
@@ -284,7 +290,7 @@ class ConstellationMatcher:
             sim,
             xy[inl.local_idx],
             self.catalog.xy[inl.catalog_idx],
-            floor_sigma_m=0.25 * cfg.sigma_m,
+            floor_sigma_m=cfg.fit_floor_sigma_m,
             with_scale=not cfg.metric,
         )
         return MatchResult(

@@ -350,9 +350,9 @@ def test_rover_weighted_fit_follows_the_map_near_the_rover():
     """A map whose far half is displaced 0.3 m (drift built up away from the rover): the
     rover-weighted fit recovers the near half's transform, the plain fit is pulled half way;
     with weights all 1 the covariance is the plain one, and it grows when the rocks are far."""
+    from fgslam.relocalizer import rover_weighted_fit
     from reloc.match_result import similarity_covariance
     from reloc.procrustes import Similarity2D, umeyama_2d
-    from fgslam.relocalizer import rover_weighted_fit
 
     rng = np.random.default_rng(5)
     world = rng.uniform(-25, 25, (120, 2))
@@ -360,17 +360,19 @@ def test_rover_weighted_fit_follows_the_map_near_the_rover():
     far = np.linalg.norm(world - rover, axis=1) > 25.0
     local = world + rng.normal(0, 0.03, world.shape)
     local[far] += [0.3, 0.0]  # the far part of the local map is off; near the rover it is right
-    cfg = RelocalizerConfig(fit_radius_m=8.0)
-    theta, t, s, rmse, cov = rover_weighted_fit(local, world, rover, cfg)
+    theta, t, s, rmse, cov = rover_weighted_fit(local, world, rover, 8.0, 0.025)
     plain = umeyama_2d(local, world, with_scale=False)
     at_rover = Similarity2D(theta, t, s).apply(rover[None])[0]
+    w = 1.0 / (1.0 + np.sum((local - rover) ** 2, axis=1) / 8.0**2)
+    r_plain = np.sum((plain.apply(local) - world) ** 2, axis=1)
+    assert rmse <= np.sqrt(np.sum(w * r_plain) / np.sum(w))  # it minimises the weighted residuals
     err_w, err_plain = np.linalg.norm(at_rover - rover), np.linalg.norm(plain.apply(rover[None])[0] - rover)
     assert err_w < 0.08 and err_w < 0.5 * err_plain, (err_w, err_plain)
     assert s == 1.0 and cov.shape == (4, 4) and np.all(np.linalg.eigvalsh(cov[:3, :3]) > 0)
     ones = similarity_covariance(plain, local, world, with_scale=False, weights=np.ones(len(world)))
     assert np.allclose(ones, similarity_covariance(plain, local, world, with_scale=False))
     # the same rocks seen from a rover 40 m further away: the fix is less certain
-    cov_far = rover_weighted_fit(local, world, rover - [40.0, 0.0], cfg)[4]
+    cov_far = rover_weighted_fit(local, world, rover - [40.0, 0.0], 8.0, 0.025)[4]
     assert cov_far[0, 0] > 2 * cov[0, 0]
     with pytest.raises(RelocalizerError, match="fit_radius_m"):
         RelocalizerConfig(fit_radius_m=0.0)
