@@ -132,6 +132,11 @@ class MatcherConfig:
         return max(self.inlier_sigmas * self.sigma_m, self.min_inlier_radius_m)
 
     @property
+    def size_log_tol(self) -> float | None:
+        """Largest allowed |log| ratio of matched rock diameters (None: no size check)."""
+        return None if self.size_ratio_max is None else math.log(self.size_ratio_max)
+
+    @property
     def fit_floor_sigma_m(self) -> float:
         """Floor of the per-axis residual sigma in a fit's covariance (a fit on a few exact pairs
         is not that exact)."""
@@ -190,7 +195,7 @@ class ConstellationMatcher:
         """The grid that ranks hypotheses (built on first use: it depends on ``sigma_m``)."""
         if self._coarse is None:
             cfg = self.config
-            tol = None if cfg.size_ratio_max is None else math.log(cfg.size_ratio_max)
+            tol = cfg.size_log_tol
             self._coarse = CoarseScorer(
                 self.catalog.xy, self.catalog.log_size, cfg.inlier_radius_m, tol
             )
@@ -214,13 +219,8 @@ class ConstellationMatcher:
             return None
         center = xy.mean(axis=0)
         radius = float(np.max(np.hypot(*(xy - center).T))) + cfg.inlier_radius_m
-        order = self._triangle_order(xy, tri, log_size)
-        if cfg.max_triangles is not None:
-            order = order[: cfg.max_triangles]
         st = _Search()
-        coarse = self.coarse_scorer
-        st.masks = coarse.masks(log_size, xy.shape[0])
-        size_log_tol = None if cfg.size_ratio_max is None else math.log(cfg.size_ratio_max)
+        size_log_tol = cfg.size_log_tol
         if size_log_tol is not None and log_size is not None:
             st.size_check = (log_size, self.catalog.log_size, size_log_tol)
             st.size_fraction = size_compatible_fraction(log_size, self._cat_log_size_sorted, size_log_tol)
@@ -233,51 +233,12 @@ class ConstellationMatcher:
         r = cfg.inlier_radius_m
         reach_theta, reach_xy = max(1.0, theta_bin * (radius - r) / r), max(1.0, xy_bin / r)
         st.poses_per_verification = reach_theta * reach_xy**2
-        # stages: batches of triangles at the side tolerance, then (``wide_side_tol_sigmas``) the
-        # same triangles again for the candidates between that and the wider tolerance
-        passes = [(cfg.side_tol_m, None)]
-        if cfg.wide_side_tol_sigmas is not None and cfg.wide_side_tol_sigmas > cfg.side_tol_sigmas:
-            passes.append((cfg.wide_side_tol_sigmas * math.sqrt(2.0) * cfg.sigma_m, cfg.side_tol_m))
-        stages = []
-        size = cfg.batch_triangles
-        for tol_m, inner_m in passes:
-            start = 0
-            while start < order.size:
-                stages.append((order[start : start + size], tol_m, inner_m))
-                start, size = start + size, min(2 * size, cfg.max_batch_triangles)
-        weights = _stage_weights([sum(1 for s_ in stages if s_[2] is inner) for _, inner in passes])
         guess = None if prior is None else prior.guess
         if guess is not None:
-            weights = [w * (1.0 - cfg.guess_share) for w in weights]
             self._verify_guess(xy, guess, st)
-        for s_idx, (sel, tol_m, inner_m) in enumerate(stages):
-            if st.done:
-                break
-            if inner_m is not None and st.n_hypotheses >= cfg.wide_max_hypotheses:
-                break  # the wider pass only while the search is still cheap
-            batch = tri.take(sel)
-            st.stage += 1
-            st.log10_weight = math.log10(weights[s_idx])
-            h = generate_hypotheses(
-                self.catalog, xy, log_size, batch,
-                side_tol_m=tol_m, scale_tol=cfg.scale_tol,
-                size_log_tol=size_log_tol, inner_tol_m=inner_m,
-            )
-            if prior is not None and len(h):
-                h = _apply_prior(h, center, prior)
-            st.n_hypotheses += len(h)
-            if len(h):
-                st.keys.append(pose_bins(h, center, theta_bin, xy_bin))
-                st.hyps.append(h)
-                st.coarse.append(coarse.score(h.theta_rad, h.scale, h.translation, xy, st.masks))
-                self._verify_top(xy, center, st)
-            # sequential acceptance: stop as soon as the best pose is convincing at this stage
-            if st.done or (
-                st.best is not None
-                and st.best[1].count >= cfg.min_inliers
-                and self._log10_fa(st, xy)[0] <= cfg.max_log10_false_alarm
-            ):
-                break
+        if not st.done:  # the triangle search, with what the guess left of the test
+            share = 1.0 if guess is None else 1.0 - cfg.guess_share
+            self._search(xy, log_size, tri, center, (theta_bin, xy_bin), prior, share, st)
         if st.best is None:
             return None
         st.best = self._settle(xy, *st.best, st)
@@ -309,6 +270,59 @@ class ConstellationMatcher:
         )
 
     # -- stages -------------------------------------------------------------------------------
+    def _search(
+        self, xy: np.ndarray, log_size: np.ndarray | None, tri: LocalTriangles, center: np.ndarray,
+        bins: tuple[float, float], prior: MatchPrior | None, share: float, st: _Search,
+    ) -> None:
+        """The triangle search (steps 1-4 of the module doc) with ``share`` of the false-alarm
+        budget, into ``st``; stops at the first convincing pose."""
+        cfg = self.config
+        theta_bin, xy_bin = bins
+        size_log_tol = cfg.size_log_tol
+        order = self._triangle_order(xy, tri, log_size)
+        if cfg.max_triangles is not None:
+            order = order[: cfg.max_triangles]
+        coarse = self.coarse_scorer
+        st.masks = coarse.masks(log_size, xy.shape[0])
+        # stages: batches of triangles at the side tolerance, then (``wide_side_tol_sigmas``) the
+        # same triangles again for the candidates between that and the wider tolerance
+        passes = [(cfg.side_tol_m, None)]
+        if cfg.wide_side_tol_sigmas is not None and cfg.wide_side_tol_sigmas > cfg.side_tol_sigmas:
+            passes.append((cfg.wide_side_tol_sigmas * math.sqrt(2.0) * cfg.sigma_m, cfg.side_tol_m))
+        stages = []
+        size = cfg.batch_triangles
+        for tol_m, inner_m in passes:
+            start = 0
+            while start < order.size:
+                stages.append((order[start : start + size], tol_m, inner_m))
+                start, size = start + size, min(2 * size, cfg.max_batch_triangles)
+        weights = [w * share for w in _stage_weights([sum(1 for s_ in stages if s_[2] is inner) for _, inner in passes])]
+        for s_idx, (sel, tol_m, inner_m) in enumerate(stages):
+            if inner_m is not None and st.n_hypotheses >= cfg.wide_max_hypotheses:
+                break  # the wider pass only while the search is still cheap
+            batch = tri.take(sel)
+            st.stage += 1
+            st.log10_weight = math.log10(weights[s_idx])
+            h = generate_hypotheses(
+                self.catalog, xy, log_size, batch,
+                side_tol_m=tol_m, scale_tol=cfg.scale_tol,
+                size_log_tol=size_log_tol, inner_tol_m=inner_m,
+            )
+            if prior is not None and len(h):
+                h = _apply_prior(h, center, prior)
+            st.n_hypotheses += len(h)
+            if len(h):
+                st.keys.append(pose_bins(h, center, theta_bin, xy_bin))
+                st.hyps.append(h)
+                st.coarse.append(coarse.score(h.theta_rad, h.scale, h.translation, xy, st.masks))
+                self._verify_top(xy, center, st)
+            # sequential acceptance: stop as soon as the best pose is convincing at this stage
+            if st.done or (
+                st.best is not None
+                and st.best[1].count >= cfg.min_inliers
+                and self._log10_fa(st, xy)[0] <= cfg.max_log10_false_alarm
+            ):
+                break
 
     def _local_triangles(self, xy: np.ndarray) -> LocalTriangles:
         cc = self.catalog.config
@@ -337,8 +351,7 @@ class ConstellationMatcher:
         n = self.catalog.hash.estimate_count(tri.sides_m, tri.handedness, tol)
         if log_size is not None and cfg.size_ratio_max is not None:
             # expected survivors of the size check: rocks of unusual size are distinctive too
-            tol_log = math.log(cfg.size_ratio_max)
-            frac = size_compatible_fractions(log_size, self._cat_log_size_sorted, tol_log)
+            frac = size_compatible_fractions(log_size, self._cat_log_size_sorted, cfg.size_log_tol)
             n *= np.prod(frac[tri.vertices], axis=1)
         # triangles of farther neighbours are less often in the catalog's index (measured at
         # 100 000 clustered rocks: 18 % of rank-2 local triangles have a true match, 4 % of
