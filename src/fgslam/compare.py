@@ -90,7 +90,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     out["ate"] = M.ate(res.final, gt).to_dict()
     out["ate_se2_aligned"] = M.ate(res.final, gt, align_se2=True).to_dict()
     out["ate_online"] = M.ate(res.online, gt).to_dict()
-    out["rpe"] = M.rpe_per_distance(res.final, gt, rpe_delta_m).to_dict()
+    out["rpe"] = M.rpe(res.final, gt, rpe_delta_m, "m").to_dict()  # as evo_rpe --delta D --delta_unit m
     cons, _ = M.consistency(res.online, gt)
     out["consistency"] = cons.to_dict()
     if res.final.cov is not None and len(res.final):

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from fgslam.errors import FgslamError
+from fgslam.nees import NeesTest, nees_test
 from reloc.backend import Trajectory
 
 # P(chi2_2 <= x) = 0.9973 (the 3-sigma probability of a 1D Gaussian), for the 2D position ellipse.
@@ -116,45 +117,75 @@ def _se3_inv(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def rpe_per_distance(est: Trajectory, gt: Trajectory, delta_m: float = 10.0) -> ErrorStats:
-    """Relative pose error (translation, m) over segments of ``delta_m`` metres travelled (truth).
+def associate_stamps(t_a: np.ndarray, t_b: np.ndarray, max_diff_s: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (ia, ib) of nearest stamps within ``max_diff_s``, as evo's ``associate_trajectories``
+    (nearest_time) pairs them: each stamp of the shorter series (a on ties) with its nearest in the
+    other (the later one when both are equally near and within reach); both ascending."""
+    t_a, t_b = np.asarray(t_a, float), np.asarray(t_b, float)
+    swap = len(t_b) < len(t_a)  # evo starts from the trajectory with fewer poses
+    s, l = (t_b, t_a) if swap else (t_a, t_b)
+    if s.size == 0 or l.size == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    i_s = np.flatnonzero((s >= l[0] - max_diff_s) & (s <= l[-1] + max_diff_s))
+    up = np.minimum(np.searchsorted(l, s[i_s], side="right"), l.size - 1)
+    d_ub = l[up] - s[i_s]
+    d_lb = np.where(up > 0, s[i_s] - l[np.maximum(up - 1, 0)], np.inf)
+    take_ub = (d_ub <= max_diff_s) & (d_ub < d_lb)
+    take_lb = ~take_ub & (d_lb <= max_diff_s) & (d_lb <= d_ub)
+    keep = take_ub | take_lb
+    i_l = np.where(take_ub, up, up - 1)[keep]
+    i_s = i_s[keep]
+    return (i_l, i_s) if swap else (i_s, i_l)
 
-    For each estimate stamp i, j is the first stamp with travelled distance >= d_i + delta_m; the
-    error is the translation of (T_gt_i^-1 T_gt_j)^-1 (T_est_i^-1 T_est_j).
-    """
-    p_gt, yaw_gt, inside = interpolate_truth(gt, est.t)
-    idx = np.flatnonzero(inside)
-    if idx.size < 2:
-        return ErrorStats.of(np.zeros(0))
-    # truth poses as planar-yaw SE(3) at the estimate stamps (z from truth, roll/pitch ignored).
-    T_gt = np.tile(np.eye(4), (idx.size, 1, 1))
-    c, s = np.cos(yaw_gt[idx]), np.sin(yaw_gt[idx])
-    T_gt[:, 0, 0], T_gt[:, 0, 1], T_gt[:, 1, 0], T_gt[:, 1, 1] = c, -s, s, c
-    T_gt[:, :3, 3] = p_gt[idx]
-    T_est = est.T_world_base[idx].copy()
-    ce, se = np.cos(yaw_of(T_est)), np.sin(yaw_of(T_est))
-    T_est[:, :3, :3] = 0.0
-    T_est[:, 0, 0], T_est[:, 0, 1], T_est[:, 1, 0], T_est[:, 1, 1], T_est[:, 2, 2] = ce, -se, se, ce, 1.0
-    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p_gt[idx], axis=0), axis=1))])
-    j = np.searchsorted(dist, dist + delta_m)
-    ok = j < idx.size
-    i, j = np.flatnonzero(ok), j[ok]
+
+def _pairs(T: np.ndarray, delta: float, unit: str) -> tuple[np.ndarray, np.ndarray]:
+    """evo's consecutive pairs: every ``delta`` frames, or each time ``delta`` metres of path (of
+    these poses) have been travelled since the previous pair's end."""
+    if unit == "frames":
+        ids = np.arange(0, len(T), int(delta))
+        return ids[:-1], ids[1:]
+    if unit != "m":
+        raise MetricsError(f"RPE delta unit must be 'm' or 'frames', got {unit!r}")
+    step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    ids, acc = [0], 0.0
+    for k, d in enumerate(step.tolist(), start=1):  # a running sum that restarts: sequential by nature
+        acc += d
+        if acc >= delta:
+            ids.append(k)
+            acc = 0.0
+    ids = np.asarray(ids)
+    return ids[:-1], ids[1:]
+
+
+def rpe(est: Trajectory, gt: Trajectory, delta: float = 10.0, unit: str = "m", max_diff_s: float = 0.01) -> ErrorStats:
+    """Relative pose error, translation part (m), as ``evo_rpe tum GT EST --delta D --delta_unit
+    {m,f}`` computes it with its defaults: stamps associated within ``max_diff_s`` (no
+    interpolation), consecutive pairs (i, j) taken on the *estimate's* path every ``delta`` metres
+    (``unit`` "m") or frames ("frames"), error E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j) on full SE(3) poses
+    (Q truth, P estimate), statistic of |translation(E)|."""
+    if not delta > 0:
+        raise MetricsError(f"RPE delta must be > 0, got {delta}")
+    ie, ig = associate_stamps(est.t, gt.t, max_diff_s)
+    if ie.size < 2:
+        raise MetricsError(f"estimate and ground truth share fewer than 2 stamps within {max_diff_s} s")
+    P, Q = est.T_world_base[ie], gt.T_world_base[ig]
+    i, j = _pairs(P, delta, unit)
     if i.size == 0:
         return ErrorStats.of(np.zeros(0))
-    rel_gt = _se3_inv(T_gt[i]) @ T_gt[j]
-    rel_est = _se3_inv(T_est[i]) @ T_est[j]
-    E = _se3_inv(rel_gt) @ rel_est
+    E = _se3_inv(_se3_inv(Q[i]) @ Q[j]) @ (_se3_inv(P[i]) @ P[j])
     return ErrorStats.of(np.linalg.norm(E[:, :3, 3], axis=1))
 
 
 @dataclass(frozen=True)
 class ConsistencyStats:
-    """3-sigma consistency of an estimate with covariance against truth.
+    """Consistency of an estimate with covariance against truth.
 
-    ``inside_3sigma``: fraction of stamps whose x/y error lies inside the 3-sigma ellipse
-    (NEES_xy <= chi2_2(0.9973)); ``inside_3sigma_axes``: fraction with |e_x| <= 3 sigma_x and
-    |e_y| <= 3 sigma_y; ``nees_mean``: average NEES over (x, y, yaw) (3 expected when consistent);
-    ``nees_xy_mean``: average over (x, y) (2 expected).
+    One-sided, as a band check: ``inside_3sigma`` is the fraction of stamps whose x/y error lies
+    inside the 3-sigma ellipse (NEES_xy <= chi2_2(0.9973)); ``inside_3sigma_axes`` the fraction with
+    |e_x| <= 3 sigma_x and |e_y| <= 3 sigma_y. Two-sided (:mod:`fgslam.nees`): ``position`` tests the
+    mean NEES of the (x, y) error (2 dof), ``yaw`` of the yaw error (1 dof), ``pose`` of (x, y, yaw)
+    (3 dof), each against its 95 % chi-square interval for the run's effective sample size.
+    ``nees_mean`` / ``nees_xy_mean`` repeat the pose / position means.
     """
 
     inside_3sigma: float
@@ -162,13 +193,20 @@ class ConsistencyStats:
     nees_mean: float
     nees_xy_mean: float
     n: int
+    position: NeesTest
+    yaw: NeesTest
+    pose: NeesTest
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        for k in ("position", "yaw", "pose"):
+            d[k] = getattr(self, k).to_dict()
+        return d
 
 
 def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict]:
-    """Consistency statistics and the per-stamp series (t, err_xy (K,2), err_yaw, sigma_xy (K,2), sigma_yaw, nees_xy).
+    """Consistency statistics and the per-stamp series (t, err_xy (K,2), err_yaw, sigma_xy (K,2),
+    sigma_yaw, nees_xy, nees_yaw, nees).
 
     Uses the pose covariance convention of reloc.backend (indices 0, 1 = world x, y; 5 = yaw).
     """
@@ -183,14 +221,20 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
     nees = np.einsum("ki,ki->k", e3, np.linalg.solve(P, e3[:, :, None])[:, :, 0])
     nees_xy = np.einsum("ki,ki->k", e_xy, np.linalg.solve(P[:, :2, :2], e_xy[:, :, None])[:, :, 0])
     sig = np.sqrt(np.clip(np.diagonal(P, axis1=1, axis2=2), 0.0, None))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        nees_yaw = e_yaw**2 / P[:, 2, 2]
     in_axes = np.all(np.abs(e_xy) <= 3.0 * sig[:, :2], axis=1)
     n = int(inside.sum())
+    nan = float("nan")
     stats = ConsistencyStats(
-        inside_3sigma=float(np.mean(nees_xy <= CHI2_2DOF_3SIGMA)) if n else float("nan"),
-        inside_3sigma_axes=float(np.mean(in_axes)) if n else float("nan"),
-        nees_mean=float(np.mean(nees)) if n else float("nan"),
-        nees_xy_mean=float(np.mean(nees_xy)) if n else float("nan"),
+        inside_3sigma=float(np.mean(nees_xy <= CHI2_2DOF_3SIGMA)) if n else nan,
+        inside_3sigma_axes=float(np.mean(in_axes)) if n else nan,
+        nees_mean=float(np.mean(nees)) if n else nan,
+        nees_xy_mean=float(np.mean(nees_xy)) if n else nan,
         n=n,
+        position=nees_test(nees_xy, 2),
+        yaw=nees_test(nees_yaw, 1),
+        pose=nees_test(nees, 3),
     )
     series = {
         "t": est.t[inside],
@@ -199,6 +243,8 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
         "sigma_xy": sig[:, :2],
         "sigma_yaw": sig[:, 2],
         "nees_xy": nees_xy,
+        "nees_yaw": nees_yaw,
+        "nees": nees,
     }
     return stats, series
 

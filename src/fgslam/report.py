@@ -2,7 +2,8 @@
 
 Columns are worlds; rows are the traverse (distance, duration), then per variant ATE (RMSE, the
 ``evo_ape`` figure), ATE max, RPE per 10 m, and the ATE improvement, then fix statistics,
-3-sigma consistency and runtime.
+consistency (inside 3 sigma, and the two-sided NEES tests of position and yaw with their 95 %
+intervals, :mod:`fgslam.nees`) and runtime.
 """
 
 from __future__ import annotations
@@ -18,6 +19,16 @@ def _f(v, fmt: str = "{:.3f}") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
     return fmt.format(v)
+
+
+def nees_cell(test: dict) -> str | None:
+    """A two-sided NEES test (:meth:`fgslam.nees.NeesTest.to_dict`) as "mean [lo, hi]", with the
+    verdict when the mean lies outside the interval."""
+    if test.get("mean") is None or not math.isfinite(test["mean"]):
+        return None
+    lo, hi = test["interval"]
+    cell = f"{test['mean']:.2f} [{lo:.2f}, {hi:.2f}]"
+    return cell if test["verdict"] == "consistent" else f"{cell} {test['verdict']}"
 
 
 def _variants(summary: dict) -> list[str]:
@@ -71,7 +82,9 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
                 row(f"Fixes accepted by {run_label(k.split('_')[0])}", lambda s, k=k: s["runs"][k]["fixes"]["accepted"], "{:d}")
     for k in variants:
         row(f"{run_label(k)} inside 3σ [%]", lambda s, k=k: 100 * s["runs"][k]["consistency"]["inside_3sigma"], "{:.1f}")
-        row(f"{run_label(k)} mean NEES (x,y,yaw)", lambda s, k=k: s["runs"][k]["consistency"]["nees_mean"], "{:.2f}")
+        for part, dof in (("position", "x,y"), ("yaw", "yaw")):
+            row(f"{run_label(k)} NEES ({dof}) [95 % interval]",
+                lambda s, k=k, part=part: nees_cell(s["runs"][k]["consistency"][part]), "{}")
     for k in variants:
         row(f"{run_label(k)} wall time [s]", lambda s, k=k: s["runs"][k]["runtime"]["wall_s"], "{:.1f}")
     row("Whole comparison wall time [s]", lambda s: s["wall_s"], "{:.1f}")

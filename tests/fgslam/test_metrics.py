@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -79,11 +81,64 @@ def test_rpe_zero_for_rigidly_moved_path_and_hand_value_for_scale_error():
     t, xy, yaw = _line(31)  # 30 m straight line at 1 m/s
     gt = _traj(t, xy, yaw)
     est = _traj(t, xy + [5.0, -2.0], yaw)
-    assert M.rpe_per_distance(est, gt, 10.0).max == pytest.approx(0.0, abs=1e-9)
-    est_scaled = _traj(t, 1.1 * xy, yaw)  # 10 % too long: 1 m error per 10 m segment
-    s = M.rpe_per_distance(est_scaled, gt, 10.0)
-    assert s.n == 21
-    assert s.rmse == pytest.approx(1.0) and s.max == pytest.approx(1.0)
+    assert M.rpe(est, gt, 10.0).max == pytest.approx(0.0, abs=1e-9)
+    # 10 % too long: pairs every 10 m of the estimate's own path, i.e. every 10 / 1.1 s
+    est_scaled = _traj(t, 1.1 * xy, yaw)
+    s = M.rpe(est_scaled, gt, 10.0)
+    assert s.n == 3  # ends at 10, 19, 28 s (11, 9.9 -> reset, ...): 10 s apart each after the first
+    assert s.max == pytest.approx(1.0)
+    f = M.rpe(est_scaled, gt, 5, "frames")  # pairs (0, 5), (5, 10), ... : 0.5 m error each
+    assert f.n == 6 and f.rmse == pytest.approx(0.5)
+    with pytest.raises(M.MetricsError, match="unit"):
+        M.rpe(est, gt, 10.0, "seconds")
+
+
+def test_associate_stamps_nearest_within_reach():
+    ta = np.array([0.0, 1.0, 2.004, 3.02, 4.0])
+    tb = np.array([0.005, 0.995, 2.0, 3.0, 3.995, 4.006])
+    ia, ib = M.associate_stamps(ta, tb, 0.01)
+    assert ia.tolist() == [0, 1, 2, 4] and ib.tolist() == [0, 1, 2, 4]  # 3.02 has no partner
+
+
+def _wobbly(t, rng):
+    """A 3D path with roll, pitch and yaw changing (so RPE sees full SE(3) rotations)."""
+    yaw = 0.3 * np.sin(t / 10)
+    xy = np.column_stack([np.cumsum(np.cos(yaw)) * 0.02, np.cumsum(np.sin(yaw)) * 0.02])
+    T = np.tile(np.eye(4), (len(t), 1, 1))
+    T[:, :3, :3] = Rotation.from_euler("zyx", np.column_stack([yaw, 0.05 * np.sin(t / 3), 0.04 * np.cos(t / 5)])).as_matrix()
+    T[:, :2, 3], T[:, 2, 3] = xy, 0.2 * np.sin(t / 7)
+    return T
+
+
+def test_rpe_matches_evo_rpe_on_tum_files(tmp_path, rng):
+    """fgslam's RPE equals evo_rpe's (`--delta 10 --delta_unit m`, and frames) on files it wrote."""
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+    from evo.main_rpe import rpe as evo_rpe
+    from evo.tools import file_interface
+
+    from fgslam.io.tum import write_tum
+
+    t = np.arange(0, 120, 1 / 30)
+    T_gt = _wobbly(t, rng)
+    gt = Trajectory(t, T_gt, None)
+    idx = np.arange(0, len(t), 3)
+    T_est = T_gt[idx].copy()
+    T_est[:, :2, 3] += np.column_stack([0.004 * t[idx], -0.002 * t[idx]]) + rng.normal(0, 0.01, (len(idx), 2))
+    T_est[:, :3, :3] = T_est[:, :3, :3] @ Rotation.from_rotvec(rng.normal(0, 0.003, (len(idx), 3))).as_matrix()
+    est = Trajectory(t[idx] + 0.002, T_est, None)  # stamps 2 ms off the truth's: associated, not interpolated
+    write_tum(tmp_path / "gt.tum", gt.t, gt.T_world_base)
+    write_tum(tmp_path / "est.tum", est.t, est.T_world_base)
+    ref = file_interface.read_tum_trajectory_file(str(tmp_path / "gt.tum"))
+    ests = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))
+    ref, ests = sync.associate_trajectories(ref, ests, max_diff=0.01)
+    for delta, unit, evo_unit in ((10.0, "m", evo_metrics.Unit.meters), (30, "frames", evo_metrics.Unit.frames)):
+        res = evo_rpe(copy.deepcopy(ref), copy.deepcopy(ests), evo_metrics.PoseRelation.translation_part,
+                      delta=delta, delta_unit=evo_unit)  # evo reduces its inputs in place
+        ours = M.rpe(est, gt, delta, unit)
+        assert ours.n == len(res.np_arrays["error_array"]) > 5
+        for stat, key in (("rmse", "rmse"), ("mean", "mean"), ("median", "median"), ("max", "max")):
+            assert getattr(ours, stat) == pytest.approx(res.stats[key], rel=1e-6), (unit, stat)
 
 
 def test_consistency_nees_and_inside_fraction():
@@ -98,6 +153,8 @@ def test_consistency_nees_and_inside_fraction():
     assert s.inside_3sigma == pytest.approx(0.75)  # 16 > 11.83
     assert s.inside_3sigma_axes == pytest.approx(0.75)
     assert np.allclose(series["sigma_xy"], 0.1)
+    assert s.position.dof == 2 and s.yaw.dof == 1 and s.pose.dof == 3
+    assert s.position.mean == pytest.approx(s.nees_xy_mean) and s.yaw.mean == pytest.approx(0.0)
 
 
 def test_consistency_counts_yaw_error_with_wrap():

@@ -3,6 +3,9 @@
 Every numeric leaf of a task's ``result`` (and of its ``runtime``, under ``runtime.``) is reduced
 over the group's successful seeds to mean, median and p90 (numpy's linear percentile); missing
 values (a fix error when no fix was made) are left out and ``n`` says how many seeds counted.
+Consistency across seeds is the ANEES of each back-end's position and yaw: the seeds' NEES pooled
+and tested two-sided against the chi-square interval of their summed effective sample sizes
+(:func:`fgslam.nees.pooled_test`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from fgslam.campaign.results import clean
+from fgslam.nees import NeesTest, Verdict, pooled_test
+from fgslam.report import nees_cell
 
 # (dotted metric, label, scale for display) of the rows of summary.md, per world and variant.
 SUMMARY_ROWS = [
@@ -83,11 +88,29 @@ def aggregate(records: list[dict]) -> dict:
             "seeds_ok": [r["seed"] for r in ok],
             "seeds_failed": sorted(r["seed"] for r in recs if r.get("status") != "ok"),
             "metrics": {k: describe([v.get(k) for v in per_task]) for k in keys},
+            "anees": anees(ok),
         })
     failures = [{"key": r["key"], "world": r["world"], "variant": r["variant"], "seed": r["seed"],
                  "error": r.get("error", "")} for r in records if r.get("status") != "ok"]
     return {"n_tasks": len(records), "n_ok": len(records) - len(failures), "n_failed": len(failures),
             "groups": out_groups, "failures": failures}
+
+
+def anees(records: list[dict]) -> dict[str, dict[str, dict]]:
+    """Per run variant (ekf, isam2_reloc, ...) and part (position, yaw): the seeds' NEES pooled
+    into one two-sided test (:meth:`fgslam.nees.NeesTest.to_dict`)."""
+    out: dict[str, dict[str, dict]] = {}
+    runs = sorted({k for r in records for k in r.get("result", {}).get("runs", {})})
+    for run in runs:
+        for part in ("position", "yaw"):
+            tests = []
+            for r in records:
+                t = r["result"]["runs"].get(run, {}).get(f"nees_{part}")
+                if t and t.get("n") and t.get("mean") is not None and t.get("n_eff"):
+                    tests.append(NeesTest(t["dof"], t["mean"], t["n"], t["n_eff"], (0.0, 0.0), Verdict.UNTESTED))
+            if tests:
+                out.setdefault(run, {})[part] = pooled_test(tests).to_dict() | {"seeds": len(tests)}
+    return out
 
 
 def _fmt(v: float | None, scale: float = 1.0) -> str:
@@ -124,6 +147,13 @@ def summary_markdown(summary: dict, records: list[dict]) -> str:
                 continue
             lines.append(f"| {label} | {_fmt(d['mean'], scale)} | {_fmt(d['median'], scale)} | "
                          f"{_fmt(d['p90'], scale)} | {d['n']} |")
+        if g.get("anees"):
+            lines += ["", "ANEES across seeds (two-sided 95 % chi-square interval):", "",
+                      "| run | position (2 dof) | yaw (1 dof) | seeds |", "|---|---|---|---:|"]
+            for run, parts in g["anees"].items():
+                cells = [nees_cell(parts[p]) or "-" if p in parts else "-" for p in ("position", "yaw")]
+                seeds = max(parts[p]["seeds"] for p in parts)
+                lines.append(f"| {run} | {cells[0]} | {cells[1]} | {seeds} |")
         lines.append("")
     lines += ["## Per task (ATE RMSE in metres)", "",
               "| world | variant | seed | " + " | ".join(lab for _, lab in TASK_COLUMNS) + " |",
