@@ -90,6 +90,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     out["ate"] = M.ate(res.final, gt).to_dict()
     out["ate_se2_aligned"] = M.ate(res.final, gt, align_se2=True).to_dict()
     out["ate_online"] = M.ate(res.online, gt).to_dict()
+    out["drift_pct"] = M.drift_pct(res.final, gt)  # final planar error per distance travelled
     out["rpe"] = M.rpe(res.final, gt, rpe_delta_m, "m").to_dict()  # as evo_rpe --delta D --delta_unit m
     cons, _ = M.consistency(res.online, gt)
     out["consistency"] = cons.to_dict()

@@ -328,6 +328,34 @@ def fix_stats(
     )
 
 
+def error_along(est: Trajectory, gt: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """(distance the truth has travelled at each of the estimate's stamps (K,) m, planar position
+    error there (K,) m), over the stamps inside the truth's span."""
+    p_gt, _, inside = interpolate_truth(gt, est.t)
+    d_gt = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt.positions_m[:, :2], axis=0), axis=1))])
+    dist = np.interp(est.t[inside], gt.t, d_gt)
+    return dist, np.linalg.norm(est.positions_m[inside, :2] - p_gt[inside, :2], axis=1)
+
+
+def drift_pct(est: Trajectory, gt: Trajectory) -> float:
+    """Final planar position error as a percentage of the distance travelled (truth)."""
+    dist, err = error_along(est, gt)
+    return 100.0 * float(err[-1]) / float(dist[-1]) if len(dist) and dist[-1] > 0 else float("nan")
+
+
+def error_by_distance(est: Trajectory, gt: Trajectory, step_m: float) -> list[dict]:
+    """Planar error statistics per ``step_m`` of distance travelled: one dict per bin with its end
+    distance (m), RMSE and max (m); for the error-against-distance tables of long traverses."""
+    if not step_m > 0:
+        raise MetricsError(f"error_by_distance step_m must be > 0, got {step_m}")
+    dist, err = error_along(est, gt)
+    if not len(dist):
+        return []
+    k = np.maximum(np.ceil(dist / step_m - 1e-9).astype(int) - 1, 0)  # bins (b step, (b + 1) step]
+    return [{"to_m": float(min((b + 1) * step_m, dist[-1])), "rmse_m": float(np.sqrt(np.mean(err[k == b] ** 2))),
+             "max_m": float(err[k == b].max())} for b in np.unique(k)]
+
+
 def path_length_m(positions_m: np.ndarray) -> float:
     """Length (m) of a polyline of (K, 3) or (K, 2) positions."""
     p = np.asarray(positions_m, float)

@@ -53,6 +53,7 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
     row("Distance [m]", lambda s: s["distance_m"], "{:.2f}")
     row("Duration [s]", lambda s: s["duration_s"], "{:.1f}")
     row("Dead reckoning ATE [m]", lambda s: s["runs"]["dead_reckoning"]["ate"]["rmse"])
+    row("Dead reckoning drift [% of distance]", lambda s: s["runs"]["dead_reckoning"]["drift_pct"], "{:.2f}")
     variants = _variants(summaries[0]) if summaries else []
     base = variants[0] if variants else None
     for k in variants:
@@ -60,6 +61,7 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
         row(f"{lab} ATE [m]", lambda s, k=k: s["runs"][k]["ate"]["rmse"])
         row(f"{lab} ATE max [m]", lambda s, k=k: s["runs"][k]["ate"]["max"])
         row(f"{lab} RPE/10 m [m]", lambda s, k=k: s["runs"][k]["rpe"]["rmse"])
+        row(f"{lab} drift [% of distance]", lambda s, k=k: s["runs"][k]["drift_pct"], "{:.2f}")
         if k.endswith("_reloc"):
             row(f"{lab} ATE improvement [%]", lambda s, k=k: s["runs"][k]["ate_improvement_over_own_pct"], "{:.1f}")
             if base and not k.startswith(base.split("_")[0]):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from _synth_stream import NearestNeighbourMatcher, make_stream
 
+from fgslam import metrics as M
 from fgslam.compare import CompareConfig, CompareError, compare_world
 from fgslam.outputs import write_comparison
 from fgslam.relocalizer import Relocalizer
@@ -64,8 +65,12 @@ def test_outputs_table_json_plots(tmp_path, compared):
     table = (tmp_path / "table.md").read_text()
     assert table == markdown_table([wc.metrics])
     assert f"| Dead reckoning + reloc ATE [m] | {m['dr_reloc']['ate']['rmse']:.3f} |" in table
-    for png in ("xy", "errors", "fix_errors"):
+    for png in ("xy", "errors", "fix_errors", "error_vs_distance", "xy_error"):
         assert (tmp_path / f"{wc.inputs.name}_{png}.png").read_bytes()[:4] == b"\x89PNG"
+    # drift: the final error over the distance, as the error-against-distance figure states it
+    dist, err = M.error_along(wc.runs["dr"].final, wc.gt)
+    assert m["dr"]["drift_pct"] == pytest.approx(100 * err[-1] / dist[-1])
+    assert f"| Dead reckoning drift [% of distance] | {m['dr']['drift_pct']:.2f} |" in table
 
 
 def test_bad_config_is_rejected():

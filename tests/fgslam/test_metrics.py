@@ -181,6 +181,21 @@ def test_fix_stats_hand_case():
     assert s.latency_s_mean == pytest.approx(2.0)
 
 
+def test_error_along_distance_drift_and_bins():
+    t, xy, yaw = _line(31)  # 30 m at 1 m/s
+    gt = _traj(t, xy, yaw)
+    est = _traj(t, xy + np.column_stack([0.01 * t, np.zeros(31)]), yaw)  # 1 cm of error per metre
+    dist, err = M.error_along(est, gt)
+    assert np.allclose(dist, t) and np.allclose(err, 0.01 * t)
+    assert M.drift_pct(est, gt) == pytest.approx(1.0)
+    bins = M.error_by_distance(est, gt, 10.0)
+    assert [b["to_m"] for b in bins] == [10.0, 20.0, 30.0]
+    assert bins[0]["max_m"] == pytest.approx(0.10) and bins[-1]["max_m"] == pytest.approx(0.30)  # (0, 10], ...
+    assert bins[1]["rmse_m"] == pytest.approx(np.sqrt(np.mean((0.01 * np.arange(11, 21)) ** 2)))
+    with pytest.raises(M.MetricsError, match="step_m"):
+        M.error_by_distance(est, gt, 0.0)
+
+
 def test_runtime_helpers():
     assert M.real_time_factor(100.0, 2.0) == pytest.approx(50.0)
     assert M.improvement_pct(2.0, 0.5) == pytest.approx(75.0)

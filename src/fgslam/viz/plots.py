@@ -136,12 +136,16 @@ def plot_fix_errors(path: Path, wc) -> Path:
 
 
 def write_plots(out_dir: Path, wc) -> list[Path]:
-    """All PNGs of one world comparison, named ``<world>_{xy,errors,fix_errors}.png``."""
+    """All PNGs of one world comparison, named ``<world>_{xy,errors,fix_errors}.png``, and the
+long-traverse figures of :mod:`fgslam.viz.traverse_plots`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    from fgslam.viz.traverse_plots import write_traverse_plots
+
     n = wc.inputs.name
     return [
         plot_xy(out_dir / f"{n}_xy.png", wc),
         plot_errors(out_dir / f"{n}_errors.png", wc),
         plot_fix_errors(out_dir / f"{n}_fix_errors.png", wc),
+        *write_traverse_plots(out_dir, wc),
     ]
