@@ -72,7 +72,7 @@ def _profile_level(level: int) -> np.ndarray:
 
 def profile(rho: np.ndarray, degradation: float) -> np.ndarray:
     """Height / D at ``rho`` = r / R of a crater of ``degradation`` (quantised)."""
-    level = int(round(float(quantise(degradation)) * DEGRADATION_LEVELS))
+    level = round(float(quantise(degradation)) * DEGRADATION_LEVELS)
     return np.interp(rho, _RHO, _profile_level(level), right=0.0)
 
 

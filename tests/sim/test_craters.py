@@ -7,8 +7,8 @@ import pytest
 
 from sim.craters import (
     INFLUENCE_RADIUS,
-    CraterSFD,
     Craters,
+    CraterSFD,
     EjectaConfig,
     crater_relief,
     depth_ratio,
@@ -65,7 +65,7 @@ def test_sampled_population_follows_the_model():
 
 
 def _flat(size_m=120.0, res_m=0.1):
-    n = int(round(size_m / res_m)) + 1
+    n = round(size_m / res_m) + 1
     return Heightmap(np.zeros((n, n)), (-size_m / 2, size_m / 2, -size_m / 2, size_m / 2))
 
 
