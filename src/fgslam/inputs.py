@@ -5,6 +5,7 @@ plus a catalog CSV, or straight from the simulator."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,14 +19,22 @@ from reloc.measurements import GroundTruthPose, RockCatalog
 log = logging.getLogger(__name__)
 
 
+# A bag with more messages than this is streamed from disk at every pass instead of read into
+# memory once (~400 bytes a measurement in memory; a yard's bags hold 130-200 k messages, a
+# kilometre traverse millions).
+STREAM_ABOVE_MESSAGES = 500_000
+
+
 @dataclass
 class RunInputs:
-    """One traverse: ``measurements`` (time-ordered), ``catalog``, ``initial`` pose, optional
-    ``orbital_image`` (H, W, 3) uint8 with ``orbital_extent`` (xmin, xmax, ymin, ymax) metres in world
-    (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), and ``source`` (what it was read from)."""
+    """One traverse: ``measurements`` (time-ordered; a list, or a re-iterable stream such as
+    :class:`fgslam.io.bag_reader.BagSource` read anew at every pass), ``catalog``, ``initial`` pose,
+    optional ``orbital_image`` (H, W, 3) uint8 with ``orbital_extent`` (xmin, xmax, ymin, ymax)
+    metres in world (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), and ``source`` (what it
+    was read from)."""
 
     name: str
-    measurements: list
+    measurements: Iterable
     catalog: RockCatalog
     initial: PoseEstimate
     orbital_image: np.ndarray | None = None
@@ -136,10 +145,13 @@ def load_sim_dir(path: Path, start_xyyaw: tuple[float, float, float] | None = No
 
 
 def load_bag(
-    bag: Path, catalog_csv: Path, start_xyyaw: tuple[float, float, float] | None = None, name: str | None = None
+    bag: Path, catalog_csv: Path, start_xyyaw: tuple[float, float, float] | None = None, name: str | None = None,
+    stream: bool | None = None,
 ) -> RunInputs:
-    """Read any ROS 2 bag with the fgslam topics plus an orbital catalog CSV (x,y,size,score)."""
-    from fgslam.io.bag_reader import read_bag
+    """Read any ROS 2 bag with the fgslam topics plus an orbital catalog CSV (x,y,size,score).
+    ``stream``: iterate the bag from disk at every pass (True), read it into memory once (False),
+    or decide by its size (None: stream above :data:`STREAM_ABOVE_MESSAGES` messages)."""
+    from fgslam.io.bag_reader import BagSource
     from fgslam.io.catalog_csv import read_catalog_csv
 
     bag, catalog_csv = Path(bag), Path(catalog_csv)
@@ -147,21 +159,24 @@ def load_bag(
         raise InputFileError(f"{bag}: bag not found")
     if not catalog_csv.exists():
         raise InputFileError(f"{catalog_csv}: catalog not found")
-    stream = read_bag(bag)
-    measurements = list(stream.measurements)
-    if not measurements:
+    source = BagSource(bag)
+    if stream is None:
+        stream = sum(source.message_counts.values()) > STREAM_ABOVE_MESSAGES
+    measurements = source if stream else list(source)
+    if not stream and not measurements:
         raise InputFileError(f"{bag}: the bag holds no measurements")
     catalog = read_catalog_csv(catalog_csv)
     if len(catalog) < 3:
         raise InputFileError(f"{catalog_csv}: the catalog holds {len(catalog)} rocks; at least 3 are needed")
     if start_xyyaw is not None:
-        initial = start_pose_from_xyyaw(measurements[0].t, *start_xyyaw)
+        t0 = source.first_stamp_s() if stream else measurements[0].t
+        initial = start_pose_from_xyyaw(t0, *start_xyyaw)
     else:
-        initial = _initial_from_stream(measurements, str(bag))
+        initial = _initial_from_stream(source.ground_truth() if stream else measurements, str(bag))
     return RunInputs(
         name=name or bag.stem, measurements=measurements, catalog=catalog, initial=initial,
-        source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv),
-                "report": str(getattr(stream, "report", ""))},
+        source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv), "streamed": bool(stream),
+                "report": str(source.report or "")},
     )
 
 
@@ -169,4 +184,22 @@ def truth_of(inputs: RunInputs) -> Trajectory | None:
     """Ground-truth trajectory of the inputs (None without /ground_truth)."""
     from fgslam.runner import ground_truth_trajectory
 
-    return ground_truth_trajectory([m for m in inputs.measurements if isinstance(m, GroundTruthPose)])
+    ground_truth = getattr(inputs.measurements, "ground_truth", None)  # a stream reads just that topic
+    poses = ground_truth() if ground_truth is not None else [m for m in inputs.measurements if isinstance(m, GroundTruthPose)]
+    return ground_truth_trajectory(poses)
+
+
+def stream_span_s(inputs: RunInputs) -> tuple[float, float]:
+    """(first, last) measurement stamp (s) of the inputs (a stream: its bag's recorded span)."""
+    span = getattr(inputs.measurements, "span_s", None)
+    if span is not None:
+        return span()
+    return inputs.measurements[0].t, inputs.measurements[-1].t
+
+
+def stream_size(inputs: RunInputs) -> str:
+    """How much the inputs hold, for the console: "N measurements" (a stream: "N messages, streamed")."""
+    counts = getattr(inputs.measurements, "message_counts", None)
+    if counts is not None:
+        return f"{sum(counts.values())} messages, streamed"
+    return f"{len(inputs.measurements)} measurements"

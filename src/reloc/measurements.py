@@ -224,3 +224,79 @@ class RockCatalog:
 
     def __len__(self) -> int:
         return int(self.xy_m.shape[0])
+
+
+# --- batches ------------------------------------------------------------------------------------
+# Readers of long recordings build millions of motion measurements; validating each in its
+# constructor costs more than decoding it. These build a batch with the constructors' checks done
+# on whole arrays (the same tolerances, the same normalisation to the bit); a row that fails is
+# handed to the constructor, so its error is the constructor's own.
+
+
+def _unchecked(cls, **values):
+    obj = object.__new__(cls)
+    for name, value in values.items():
+        object.__setattr__(obj, name, value)
+    return obj
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+def _row_ok(*arrays: np.ndarray) -> np.ndarray:
+    return np.all(np.column_stack([np.isfinite(a).reshape(len(a), -1) for a in arrays]), axis=1)
+
+
+def _checked(cls, ok: np.ndarray, rows, build) -> list:
+    """Per row: ``build(i)`` where ``ok``, else ``cls(*rows(i))`` or the MeasurementError it raises."""
+    out = []
+    for i, good in enumerate(ok.tolist()):
+        if good:
+            out.append(build(i))
+            continue
+        try:
+            out.append(cls(*rows(i)))
+        except MeasurementError as exc:
+            out.append(exc)
+    return out
+
+
+def batch_planar(cls, t: np.ndarray, v_mps: np.ndarray, yaw_rate_radps: np.ndarray) -> list:
+    """:class:`CmdVel` or :class:`WheelOdometry` for (K,) stamps, speeds and yaw rates; a row
+    that is no valid measurement gives its :class:`MeasurementError` instead."""
+    if cls not in (CmdVel, WheelOdometry):
+        raise MeasurementError(f"batch_planar builds CmdVel or WheelOdometry, not {cls.__name__}")
+    t, v, w = (np.asarray(a, dtype=float) for a in (t, v_mps, yaw_rate_radps))
+    tl, vl, wl = t.tolist(), v.tolist(), w.tolist()
+    return _checked(cls, _row_ok(t, v, w), lambda i: (tl[i], vl[i], wl[i]),
+                    lambda i: _unchecked(cls, t=tl[i], v_mps=vl[i], yaw_rate_radps=wl[i]))
+
+
+def _unit_rows(quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = np.linalg.norm(quat, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return _frozen(quat / n[:, None]), np.abs(n - 1.0) <= 1e-3
+
+
+def batch_imu(t: np.ndarray, quat_xyzw: np.ndarray, gyro_radps: np.ndarray, accel_mps2: np.ndarray) -> list:
+    """:class:`ImuSample` of (K,) stamps, (K, 4) quaternions, (K, 3) rates and (K, 3) specific forces."""
+    t = np.asarray(t, dtype=float)
+    q_raw, g, a = (np.asarray(x, dtype=float) for x in (quat_xyzw, gyro_radps, accel_mps2))
+    q, unit = _unit_rows(q_raw)
+    g, a = _frozen(g), _frozen(a)
+    tl = t.tolist()
+    return _checked(ImuSample, _row_ok(t, q_raw, g, a) & unit, lambda i: (tl[i], q_raw[i], g[i], a[i]),
+                    lambda i: _unchecked(ImuSample, t=tl[i], quat_xyzw=q[i], gyro_radps=g[i], accel_mps2=a[i]))
+
+
+def batch_ground_truth(t: np.ndarray, position_m: np.ndarray, quat_xyzw: np.ndarray) -> list:
+    """:class:`GroundTruthPose` of (K,) stamps, (K, 3) positions and (K, 4) quaternions."""
+    t = np.asarray(t, dtype=float)
+    p, q_raw = _frozen(position_m), np.asarray(quat_xyzw, dtype=float)
+    q, unit = _unit_rows(q_raw)
+    tl = t.tolist()
+    return _checked(GroundTruthPose, _row_ok(t, p, q_raw) & unit, lambda i: (tl[i], p[i], q_raw[i]),
+                    lambda i: _unchecked(GroundTruthPose, t=tl[i], position_m=p[i], quat_xyzw=q[i]))

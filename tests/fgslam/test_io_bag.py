@@ -340,7 +340,7 @@ def test_exact_duplicates_dropped_and_counted(tmp_path, stream, caplog):
     assert got.report.n_repairs == 2 + 1
     assert "/imu: dropped 2 exact duplicate message(s)" in got.report.repairs
     assert sum("duplicate" in r.getMessage() for r in caplog.records) == 2
-    with pytest.raises(BagError, match=r"topic /imu: 2 duplicate and 0 conflicting"):
+    with pytest.raises(BagError, match=r"topic /imu: a message shares its stamp 1100000000 ns with an earlier one \(duplicate\)"):
         read_bag(bag, repair=False)
 
 
@@ -350,7 +350,7 @@ def test_duplicates_in_place_raise_without_repair(tmp_path, stream):
     bag = tmp_path / "bag"
     write_bag(bag, [*stream[: i + 1], cmds[5], *stream[i + 1 :]])
     assert read_bag(bag).report.topics["/cmd_vel"].n_duplicates == 1
-    with pytest.raises(BagError, match=r"topic /cmd_vel: 1 duplicate and 0 conflicting"):
+    with pytest.raises(BagError, match=r"topic /cmd_vel: a message shares its stamp .* \(duplicate\)"):
         read_bag(bag, repair=False)
 
 
@@ -363,7 +363,7 @@ def test_conflicting_same_stamp_keeps_first_recorded(tmp_path, stream):
     got = read_bag(bag)
     assert got.report.topics["/cmd_vel"].n_conflicts == 1
     assert _same_stream(got.measurements, stream)
-    with pytest.raises(BagError, match="1 conflicting"):
+    with pytest.raises(BagError, match=r"\(conflicting\)"):
         read_bag(bag, repair=False)
 
 
@@ -404,9 +404,7 @@ def test_stamps_out_of_log_time_order_sorted_and_counted(tmp_path, caplog):
     # the sample recorded 4th carries stamp 3's time: sorting by stamp puts its gyro at index 3
     assert [round(s.gyro_radps[2] / 0.01) for s in samples] == [0, 1, 2, 4, 3, 5, 6, 8, 7, 9]
     assert any("out of stamp order" in r.getMessage() for r in caplog.records)
-    with pytest.raises(
-        BagError, match=r"topic /imu: 2 message\(s\) stamped earlier .* \(out of order\)"
-    ):
+    with pytest.raises(BagError, match=r"topic /imu: message 5 stamped earlier .* \(out of order\)"):
         read_bag(bag, repair=False, **kw)
 
 

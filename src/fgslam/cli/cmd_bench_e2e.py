@@ -62,8 +62,9 @@ def bench_e2e_cmd(
 
         @contextlib.contextmanager
         def compare_progress(inputs):
-            t = [m.t for m in inputs.measurements]
-            bars = StreamProgress(progress, t[0], t[-1])
+            from fgslam.inputs import stream_span_s
+
+            bars = StreamProgress(progress, *stream_span_s(inputs))
             yield lambda stage, t_s: bars.update(f"{inputs.name}: {stage}", t_s)
 
         res = run_e2e(sim_cfg, out, cmp_cfg, tick=tick, compare_progress=compare_progress, rrd=rrd)

@@ -13,12 +13,13 @@ def compare_and_write(inputs_list: list, out: Path, cfg, console, rrd: bool = Tr
     """Compare every input (progress bars), write all outputs, print the table; returns the comparisons."""
     from fgslam.cli.progress import stream_progress
     from fgslam.compare import compare_world
+    from fgslam.inputs import stream_size
     from fgslam.outputs import write_comparison
     from fgslam.report import markdown_table
 
     comparisons = []
     for inputs in inputs_list:
-        console.print(f"[bold]{inputs.name}[/bold]: {len(inputs.measurements)} measurements, "
+        console.print(f"[bold]{inputs.name}[/bold]: {stream_size(inputs)}, "
                       f"{len(inputs.catalog)} catalog rocks")
         with stream_progress(inputs, console) as progress:
             comparisons.append(compare_world(inputs, cfg, on_progress=progress.update))

@@ -27,8 +27,9 @@ def stream_progress(inputs, console):
     """Context manager yielding a :class:`StreamProgress` for ``inputs``' time span."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    t0 = inputs.measurements[0].t
-    t1 = inputs.measurements[-1].t
+    from fgslam.inputs import stream_span_s
+
+    t0, t1 = stream_span_s(inputs)
     with Progress(TextColumn("{task.description:<28}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
                   TimeElapsedColumn(), console=console, transient=False) as progress:
         yield StreamProgress(progress, t0, t1)

@@ -31,12 +31,19 @@ class BagReaderConfig:
     ``base_frame``: the frame name meaning base_link. ``default_rock_sigma_m``: isotropic 1-sigma
     position noise for detections without a usable covariance (bags of other tools often leave it
     zero); None makes such a detection invalid. ``rock_class_ids``: hypotheses counted as rocks
-    (None: any class; the best-scoring hypothesis gives the score).
+    (None: any class; the best-scoring hypothesis gives the score). ``reorder_window_s``: how far
+    (s of stamp) a message may arrive after later-stamped ones and still be put in order (the
+    reader holds that much stream in memory; later ones are dropped as late).
     """
 
     base_frame: str = "base_link"
     default_rock_sigma_m: float | None = None
     rock_class_ids: tuple[str, ...] | None = None
+    reorder_window_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.reorder_window_s) and self.reorder_window_s >= 0):
+            raise BagError(f"bag reader reorder_window_s must be finite and >= 0, got {self.reorder_window_s}")
 
 
 def header_ns(header) -> int:

@@ -7,17 +7,22 @@ for bags that do not, the Jazzy typestore with vision_msgs is the fallback.
 
 Measurement time is the header stamp (integer ns -> float s), not the recording time; only an
 unstamped ``geometry_msgs/Twist`` on the command topic falls back to the log time. Stamps are
-checked per topic: messages older than an earlier one are counted as reordered and sorted; exact
-duplicates (same stamp, same content) are dropped; same-stamp messages with different content
-keep the first one recorded; messages with NaN/inf or otherwise invalid content are dropped.
+checked per topic: messages older than an earlier one are counted as reordered and sorted (within
+``BagReaderConfig.reorder_window_s``; older still, they are dropped as late); exact duplicates
+(same stamp, same content) are dropped; same-stamp messages with different content keep the first
+one recorded; messages with NaN/inf or otherwise invalid content are dropped.
+
+The bag is streamed (:class:`BagSource`): a kilometre traverse is never held in memory, and
+:func:`read_bag` is the same stream collected into a list.
 Every such repair is counted in :class:`BagReport` and logged at WARNING. With
 ``repair=False`` each of them raises :class:`~fgslam.errors.BagError` instead.
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +41,15 @@ from fgslam.io.bag_decode import (
     has_nonfinite,
     header_ns,
     same_measurement,
+)
+from fgslam.io.cdr_batch import (
+    LAYOUTS,
+    batch_cmd_vel,
+    batch_ground_truth,
+    batch_imu,
+    batch_wheel_odom,
+    decode_block,
+    row_finite,
 )
 from reloc.errors import MeasurementError
 from reloc.measurements import Measurement, sort_key
@@ -66,6 +80,7 @@ class TopicReport:
     n_conflicts: int = 0  # same stamp, different content (dropped; the first recorded is kept)
     n_nonfinite: int = 0  # NaN/inf in the message (dropped)
     n_invalid: int = 0  # other content that is no valid measurement (dropped)
+    n_late: int = 0  # stamped more than the reorder window before a message recorded earlier (dropped)
     n_log_stamped: int = 0  # unstamped messages timed by the bag's log time
     first_problem: str = ""  # the first invalid message's problem, for the log
 
@@ -77,6 +92,7 @@ class TopicReport:
             + self.n_conflicts
             + self.n_nonfinite
             + self.n_invalid
+            + self.n_late
         )
 
 
@@ -111,7 +127,8 @@ class _Role:
     name: str
     topic: str
     msgtypes: tuple[str, ...]
-    decode: Callable
+    decode: Callable  # one deserialized message -> measurement
+    batch: Callable | None = None  # a decoded block (fgslam.io.cdr_batch) -> (ns, measurement) rows
 
 
 def _resolve(path: Path) -> Path:
@@ -190,6 +207,80 @@ def _check_topics(reader, roles: list[_Role], path: Path) -> dict[str, object]:
     return selected
 
 
+def _roles(topics: TopicNames, rocks: RockDecoder) -> list[_Role]:
+    return [
+        _Role("cmd_vel", topics.cmd_vel, (CMD_VEL_TYPE, CMD_VEL_UNSTAMPED_TYPE), decode_cmd_vel, batch_cmd_vel),
+        _Role("wheel_odom", topics.wheel_odom, (ODOMETRY_TYPE,), decode_wheel_odom, batch_wheel_odom),
+        _Role("imu", topics.imu, (IMU_TYPE,), decode_imu, batch_imu),
+        _Role("rocks", topics.rocks, (ROCKS_TYPE,), rocks),
+        _Role("ground_truth", topics.ground_truth, (ODOMETRY_TYPE,), decode_ground_truth, batch_ground_truth),
+    ]
+
+
+class BagSource:
+    """A bag as a lazily decoded, time-ordered measurement stream that can be iterated again.
+
+    Each iteration opens the bag, decodes its messages in blocks of :data:`BLOCK` (the motion
+    messages vectorised, :mod:`fgslam.io.cdr_batch`) and yields measurements in
+    :func:`reloc.measurements.sort_key` order, holding only ``reorder_window_s`` of stream in
+    memory: the repairs of the module doc are applied as the messages pass. A message stamped
+    more than the window before the newest stamp recorded before it cannot be put in order any
+    more; it is dropped and counted as late (``repair=False``: raised). The topics and their types are checked
+    when the source is made; ``report`` is set after the first complete iteration (whose repairs
+    are logged once), and a required topic none of whose messages was usable raises at its end.
+    """
+
+    def __init__(self, path: str | Path, topics: TopicNames | None = None, *,
+                 camera_frames: dict[str, np.ndarray] | None = None, repair: bool = True,
+                 config: BagReaderConfig | None = None) -> None:
+        self.path = Path(path)
+        self.config = config or BagReaderConfig()
+        self.repair = repair
+        self._roles = _roles(topics or TopicNames(), RockDecoder(self.config, camera_frames))  # checks extrinsics first
+        self._bag = _resolve(self.path)
+        reader = _open(self._bag, self.path)
+        try:
+            self._topics = list(_check_topics(reader, self._roles, self.path))
+            self.message_counts = {t: int(reader.topics[t].msgcount) for t in self._topics}
+            self._span_ns = (int(reader.start_time), int(reader.end_time))
+        finally:
+            reader.close()
+        self.report: BagReport | None = None
+
+    def __iter__(self) -> Iterator[Measurement]:
+        return self._stream(self._roles)
+
+    def ground_truth(self) -> list[Measurement]:
+        """The ground-truth measurements only (reads just that topic; [] when the bag has none)."""
+        roles = [r for r in self._roles if r.name == "ground_truth" and r.topic in self._topics]
+        return list(self._stream(roles, check=False)) if roles else []
+
+    def span_s(self) -> tuple[float, float]:
+        """(start, end) of the recording (s, log time: close to the stamps' span, known without reading)."""
+        return self._span_ns[0] / 1e9, self._span_ns[1] / 1e9
+
+    def first_stamp_s(self) -> float:
+        """The stamp (s) of the stream's first measurement."""
+        for m in self._stream(self._roles, check=False):
+            return m.t
+        raise BagError(f"bag {self.path}: no usable measurement")
+
+    def _stream(self, roles: list[_Role], check: bool = True) -> Iterator[Measurement]:
+        reader = _open(self._bag, self.path)
+        try:
+            merge = _Merge(roles, [r.topic for r in roles if r.topic in self._topics], reader,
+                           self.path, self.repair, self.config.reorder_window_s)
+            yield from merge.run()
+        finally:
+            reader.close()
+        if check and roles is self._roles:
+            reports = merge.reports()
+            _check_kept(reports, self.path)
+            if self.report is None:
+                repairs = [line for r in reports.values() for line in _log_repairs(r, self.path)]
+                self.report = BagReport(path=self.path, topics=reports, repairs=tuple(repairs))
+
+
 def read_bag(
     path: str | Path,
     topics: TopicNames | None = None,
@@ -198,7 +289,8 @@ def read_bag(
     repair: bool = True,
     config: BagReaderConfig | None = None,
 ) -> BagStream:
-    """Read the bag at ``path`` (rosbag2 directory or .mcap/.db3 file) into a :class:`BagStream`.
+    """Read the whole bag at ``path`` (rosbag2 directory or .mcap/.db3 file) into a
+    :class:`BagStream` (a :class:`BagSource` iterated once into memory).
 
     ``camera_frames`` maps a detection frame id to ``T_base_cam`` (4, 4), so rocks reported in a
     camera frame are rotated and translated into base_link. Raises :class:`BagError` naming the
@@ -206,144 +298,148 @@ def read_bag(
     cmd_vel or wheel_odom), wrong message types, unknown frames, and (``repair=False``) on any
     stamp or content problem that would otherwise be repaired.
     """
-    path = Path(path)
-    topics = topics or TopicNames()
-    config = config or BagReaderConfig()
-    rocks = RockDecoder(config, camera_frames)  # validates the extrinsics before any I/O
-    roles = [
-        _Role("cmd_vel", topics.cmd_vel, (CMD_VEL_TYPE, CMD_VEL_UNSTAMPED_TYPE), decode_cmd_vel),
-        _Role("wheel_odom", topics.wheel_odom, (ODOMETRY_TYPE,), decode_wheel_odom),
-        _Role("imu", topics.imu, (IMU_TYPE,), decode_imu),
-        _Role("rocks", topics.rocks, (ROCKS_TYPE,), rocks),
-        _Role("ground_truth", topics.ground_truth, (ODOMETRY_TYPE,), decode_ground_truth),
-    ]
-    reader = _open(_resolve(path), path)
-    try:
-        selected = _check_topics(reader, roles, path)
-        per_topic = _decode_all(reader, selected, roles, path, repair)
-    finally:
-        reader.close()
-
-    measurements: list[Measurement] = []
-    reports: dict[str, TopicReport] = {}
-    repairs: list[str] = []
-    for role in roles:
-        if role.topic not in per_topic:
-            continue
-        entries, counts = per_topic[role.topic]
-        kept, counts = _repair_stamps(entries, counts, role.topic, path, repair)
-        measurements.extend(kept)
-        report = TopicReport(topic=role.topic, role=role.name, n_kept=len(kept), **counts)
-        reports[role.topic] = report
-        repairs.extend(_log_repairs(report, path))
-    _check_kept(reports, path)
-    measurements.sort(key=sort_key)
-    log.info(
-        "read bag %s: %d measurements, %s",
-        path,
-        len(measurements),
-        {t: r.n_kept for t, r in reports.items()},
-    )
-    return BagStream(measurements, BagReport(path=path, topics=reports, repairs=tuple(repairs)))
+    source = BagSource(path, topics, camera_frames=camera_frames, repair=repair, config=config)
+    measurements = list(source)
+    log.info("read bag %s: %d measurements, %s", source.path, len(measurements),
+             {t: r.n_kept for t, r in source.report.topics.items()})
+    return BagStream(measurements, source.report)
 
 
-def _decode_all(reader, selected, roles: list[_Role], path: Path, repair: bool):
-    """Deserialize and decode every selected message: topic -> ([(ns, seq, m)], counts)."""
-    role_of = {r.topic: r for r in roles}
-    out: dict[str, tuple[list, dict]] = {
-        t: (
-            [],
-            {
-                "msgtype": reader.topics[t].msgtype,
-                "n_messages": 0,
-                "n_nonfinite": 0,
-                "n_invalid": 0,
-                "n_log_stamped": 0,
-                "first_problem": "",
-            },
-        )
-        for t in selected
-    }
-    connections = [c for conns in selected.values() for c in conns]
-    topic = None
-    seq = 0
-    try:
-        for conn, log_ns, raw in reader.messages(connections=connections):
-            topic = conn.topic
-            entries, counts = out[topic]
-            counts["n_messages"] += 1
-            seq += 1
+BLOCK = 2048  # messages decoded at once (the vectorised decoders' batch)
+
+
+class _Merge:
+    """One pass over a bag: blocks of raw messages -> measurements -> per-topic stamp repairs ->
+    one stream in sort_key order, released once no message still to come can precede it."""
+
+    def __init__(self, roles, topics, reader, path: Path, repair: bool, window_s: float) -> None:
+        self.role = {r.topic: r for r in roles if r.topic in topics}
+        self.reader, self.path, self.repair = reader, path, repair
+        self.window_ns = int(round(window_s * 1e9))
+        self.counts = {t: {"msgtype": reader.topics[t].msgtype, "n_messages": 0, "n_kept": 0, "n_reordered": 0,
+                           "n_duplicates": 0, "n_conflicts": 0, "n_nonfinite": 0, "n_invalid": 0, "n_late": 0,
+                           "n_log_stamped": 0, "first_problem": ""} for t in self.role}
+        self.raw: dict[str, list] = {t: [] for t in self.role}  # (arrival, log_ns, raw) waiting for decoding
+        self.heap: list = []
+        self.seq = 0
+        self.max_ns = {t: None for t in self.role}  # latest stamp decoded per topic
+        self.newest_ns = None  # latest stamp decoded on any topic
+        self.group: dict[str, tuple[int, list]] = {}  # per topic: stamp and measurements released at it
+
+    def run(self) -> Iterator[Measurement]:
+        conns = [c for t in self.role for c in self.reader.topics[t].connections]
+        topic, n_raw = None, 0
+        try:
+            for conn, log_ns, raw in self.reader.messages(connections=conns):
+                topic = conn.topic
+                self.counts[topic]["n_messages"] += 1
+                self.raw[topic].append((n_raw, log_ns, raw))
+                n_raw += 1
+                if n_raw >= BLOCK:
+                    self._decode_buffered()
+                    n_raw = 0
+                    yield from self._release(final=False)
+        except BagError:
+            raise
+        except Exception as exc:  # a corrupt chunk or record surfaces as any of rosbags' errors
+            where = f"after a message on topic {topic}" if topic else "before the first message"
+            raise BagError(f"bag {self.path}: reading failed {where} (truncated or corrupt bag): "
+                           f"{type(exc).__name__}: {exc}") from exc
+        self._decode_buffered()
+        yield from self._release(final=True)
+
+    def reports(self) -> dict[str, TopicReport]:
+        return {t: TopicReport(topic=t, role=self.role[t].name, **c) for t, c in self.counts.items()}
+
+    def _decode_buffered(self) -> None:
+        """Decode the buffered messages topic by topic, then take them in recording order."""
+        decoded = []
+        for topic, items in self.raw.items():
+            if items:
+                decoded += self._decode(topic, items)
+                self.raw[topic] = []
+        decoded.sort(key=lambda d: d[0])
+        for _, topic, ns, m, n, nonfinite in decoded:
+            self._decoded(topic, ns, m, n, nonfinite)
+
+    def _decode(self, topic: str, items: list) -> list[tuple]:
+        """(arrival, topic, ns, measurement or its error, message number, nonfinite) per message."""
+        role, counts = self.role[topic], self.counts[topic]
+        msgtype = counts["msgtype"]
+        n0 = counts["n_messages"] - len(items) + 1
+        block = decode_block([raw for _, _, raw in items], LAYOUTS[msgtype]) if role.batch and msgtype in LAYOUTS else None
+        if block is not None:
+            if block.stamp_ns is None:
+                counts["n_log_stamped"] += len(items)
+            stamps, built = role.batch(block, [ln for _, ln, _ in items])
+            return [(a, topic, ns, m, n0 + k, not ok) for k, ((a, _, _), ns, m, ok)
+                    in enumerate(zip(items, stamps.tolist(), built, row_finite(block).tolist()))]
+        out = []
+        for k, (arrival, log_ns, raw) in enumerate(items):
             try:
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg = self.reader.deserialize(raw, msgtype)
             except Exception as exc:
-                raise BagError(
-                    f"bag {path}: topic {topic}: message {counts['n_messages']} cannot be "
-                    f"deserialized (corrupt bag): {type(exc).__name__}: {exc}"
-                ) from exc
+                raise BagError(f"bag {self.path}: topic {topic}: message {n0 + k} cannot be deserialized "
+                               f"(corrupt bag): {type(exc).__name__}: {exc}") from exc
             if hasattr(msg, "header"):
                 ns = header_ns(msg.header)
             else:
                 ns = int(log_ns)
                 counts["n_log_stamped"] += 1
             try:
-                m = role_of[topic].decode(msg, ns)
+                m = role.decode(msg, ns)
             except UnknownFrameError as exc:
-                raise BagError(f"bag {path}: topic {topic}: {exc}") from None
+                raise BagError(f"bag {self.path}: topic {topic}: {exc}") from None
             except (MeasurementError, DecodeError) as exc:
-                kind = "n_nonfinite" if has_nonfinite(msg) else "n_invalid"
-                if not repair:
-                    raise BagError(
-                        f"bag {path}: topic {topic}: message {counts['n_messages']} "
-                        f"(stamp {ns} ns) is invalid: {exc}"
-                    ) from None
-                counts[kind] += 1
-                counts["first_problem"] = counts["first_problem"] or str(exc)
-                continue
-            entries.append((ns, seq, m))
-    except BagError:
-        raise
-    except Exception as exc:  # a corrupt chunk or record surfaces as any of rosbags' errors
-        where = f"after a message on topic {topic}" if topic else "before the first message"
-        raise BagError(
-            f"bag {path}: reading failed {where} (truncated or corrupt bag): "
-            f"{type(exc).__name__}: {exc}"
-        ) from exc
-    return out
+                m = exc
+            out.append((arrival, topic, ns, m, n0 + k, isinstance(m, Exception) and has_nonfinite(msg)))
+        return out
 
-
-def _repair_stamps(entries: list, counts: dict, topic: str, path: Path, repair: bool):
-    """Sort one topic by stamp and drop same-stamp repeats; return (measurements, counts)."""
-    n_reordered = 0
-    latest = None
-    for ns, _, _ in entries:
+    def _decoded(self, topic: str, ns: int, m, n: int, nonfinite: bool) -> None:
+        counts = self.counts[topic]
+        if isinstance(m, Exception):
+            if not self.repair:
+                raise BagError(f"bag {self.path}: topic {topic}: message {n} (stamp {ns} ns) is invalid: {m}")
+            counts["n_nonfinite" if nonfinite else "n_invalid"] += 1
+            counts["first_problem"] = counts["first_problem"] or str(m)
+            return
+        latest = self.max_ns[topic]
         if latest is not None and ns < latest:
-            n_reordered += 1
-        latest = ns if latest is None else max(latest, ns)
-    if n_reordered and not repair:
-        raise BagError(
-            f"bag {path}: topic {topic}: {n_reordered} message(s) stamped earlier than "
-            "a message recorded before them (out of order)"
-        )
-    entries = sorted(entries, key=lambda e: (e[0], e[1]))
-    kept: list[Measurement] = []
-    n_dup = n_conflict = 0
-    group_ns, group = None, []
-    for ns, _, m in entries:
-        if ns != group_ns:
-            group_ns, group = ns, []
-        if not group:
-            group.append(m)
-            kept.append(m)
-        elif any(same_measurement(m, k) for k in group):
-            n_dup += 1
-        else:
-            n_conflict += 1
-    if (n_dup or n_conflict) and not repair:
-        raise BagError(
-            f"bag {path}: topic {topic}: {n_dup} duplicate and {n_conflict} conflicting "
-            "message(s) share a stamp with an earlier one"
-        )
-    return kept, dict(counts, n_reordered=n_reordered, n_duplicates=n_dup, n_conflicts=n_conflict)
+            if not self.repair:
+                raise BagError(f"bag {self.path}: topic {topic}: message {n} stamped earlier than a message "
+                               "recorded before it (out of order)")
+            if self.newest_ns - ns > self.window_ns:  # too late to be put in order: it may follow released ones
+                counts["n_late"] += 1
+                return
+            counts["n_reordered"] += 1
+        elif self.newest_ns is not None and self.newest_ns - ns > self.window_ns:
+            if not self.repair:
+                raise BagError(f"bag {self.path}: topic {topic}: message {n} stamped {ns} ns, more than "
+                               f"{self.window_ns / 1e9:g} s before messages recorded earlier (out of order)")
+            counts["n_late"] += 1
+            return
+        self.max_ns[topic] = ns if latest is None else max(latest, ns)
+        self.newest_ns = ns if self.newest_ns is None else max(self.newest_ns, ns)
+        self.seq += 1
+        heapq.heappush(self.heap, (sort_key(m), ns, self.seq, topic, m))
+
+    def _release(self, final: bool) -> Iterator[Measurement]:
+        horizon = None if final or self.newest_ns is None else self.newest_ns - self.window_ns
+        heap = self.heap
+        while heap and (horizon is None or heap[0][1] <= horizon):
+            key, ns, _, topic, m = heapq.heappop(heap)
+            counts = self.counts[topic]
+            g_ns, g = self.group.get(topic, (None, []))
+            if ns == g_ns:
+                dup = any(same_measurement(m, k) for k in g)
+                if not self.repair:
+                    raise BagError(f"bag {self.path}: topic {topic}: a message shares its stamp {ns} ns with an "
+                                   f"earlier one ({'duplicate' if dup else 'conflicting'})")
+                counts["n_duplicates" if dup else "n_conflicts"] += 1
+                continue
+            self.group[topic] = (ns, [m])
+            counts["n_kept"] += 1
+            yield m
 
 
 _REPAIR_TEXT = {
@@ -353,6 +449,7 @@ _REPAIR_TEXT = {
     "(kept the first recorded)",
     "n_nonfinite": "dropped %d message(s) holding NaN/inf",
     "n_invalid": "dropped %d invalid message(s)",
+    "n_late": "dropped %d message(s) stamped more than the reorder window before earlier-recorded ones",
 }
 
 
