@@ -43,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
         with terminate_on_sigterm():  # SIGTERM unwinds like Ctrl-C: workers stopped, partial outputs removed
             result = app(args=argv, standalone_mode=False)
         if isinstance(result, int):  # click returns typer.Exit's code in non-standalone mode
+            if result == 130:  # typer turns Ctrl-C into Exit(130)
+                sys.stderr.write("fgslam: interrupted\n")
             return result
     except Terminated as exc:
         sys.stderr.write("fgslam: terminated\n")
