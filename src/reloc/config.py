@@ -2,7 +2,7 @@
 
 Two checks share one declaration, the field's annotation: its type (``float``, ``int``, ``bool``,
 ``str``, an ``Enum``, a ``Literal`` of choices, a tuple, a nested config) and its range
-(``Positive``, ``NonNegative``, ``Fraction``, ... or any ``Annotated[float, Gt(..), Le(..)]``):
+(``Positive``, ``NonNegative``, ``PositiveInt``, ... or any ``Annotated[float, Gt(..), Le(..)]``):
 
 - at load time, :func:`config_from_dict` validates a YAML/dict override strictly with pydantic
   (JSON rules: ``"2.0"`` is no number, ``2.5`` no integer, ``"no"`` no boolean, NaN and inf are
@@ -33,13 +33,12 @@ from reloc.errors import ConfigError
 T = TypeVar("T")
 
 __all__ = [
-    "Fraction", "Ge", "Gt", "Interval", "Le", "Lt", "NonNegative", "NonNegativeInt", "Positive",
+    "Ge", "Gt", "Interval", "Le", "Lt", "NonNegative", "NonNegativeInt", "Positive",
     "PositiveInt", "checked", "config_from_dict", "config_to_dict",
 ]
 
 Positive = Annotated[float, Gt(0)]
 NonNegative = Annotated[float, Ge(0)]
-Fraction = Annotated[float, Interval(ge=0, le=1)]
 PositiveInt = Annotated[int, Ge(1)]
 NonNegativeInt = Annotated[int, Ge(0)]
 

@@ -93,9 +93,9 @@ def test_an_interrupted_commit_is_marked_incomplete(tmp_path):
 
 def test_a_second_writer_is_refused_while_the_first_holds_the_lock(tmp_path):
     out = tmp_path / "cmp"
-    with OutputDir(out, "compare"):
-        with pytest.raises(OutputDirError, match="another fgslam process is writing"), OutputDir(out, "compare"):
-            pass
+    with OutputDir(out, "compare"), pytest.raises(OutputDirError, match="another fgslam process is writing"), \
+            OutputDir(out, "compare"):
+        pass
     with OutputDir(out, "compare"):  # released
         pass
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import itertools
 import json
 import math
 import os
@@ -66,7 +67,7 @@ def test_a_bag_without_usable_cmd_vel_drives_on_its_wheel_odometry(tmp_path, str
                  "--config", str(tmp_path / "wheel.yaml")]) == 0
     ref = _ate(tmp_path / "ref")
     truth = [m for m in stream.measurements if isinstance(m, GroundTruthPose)]
-    driven = sum(np.linalg.norm(b.position_m - a.position_m) for a, b in zip(truth, truth[1:]))
+    driven = sum(np.linalg.norm(b.position_m - a.position_m) for a, b in itertools.pairwise(truth))
     assert ref < 0.1 * driven  # standing still would be off by up to the whole traverse
     variants = {"nocmd": [m for m in stream.measurements if not isinstance(m, CmdVel)],
                 "nancmd": [_nan_cmd(m) if isinstance(m, CmdVel) else m for m in stream.measurements]}
@@ -85,9 +86,10 @@ def test_a_bag_without_usable_cmd_vel_drives_on_its_wheel_odometry(tmp_path, str
 def test_start_pose_carries_z_and_the_imu_attitude(tmp_path, stream, caplog):
     """Case 2: --start X,Y,Z,YAW on a yard 4.47 m above the map origin; the gravity-referenced
     roll and pitch come from the IMU; --start-sigma sets the start covariance."""
+    from scipy.spatial.transform import Rotation
+
     from fgslam.cli.cmd_run import parse_start
     from fgslam.inputs import load_bag
-    from scipy.spatial.transform import Rotation
 
     high = [dataclasses.replace(m, position_m=m.position_m + [0.0, 0.0, 4.47]) if isinstance(m, GroundTruthPose) else m
             for m in stream.measurements]
@@ -225,8 +227,11 @@ def _alive(pids: list[int]) -> list[int]:
 def _start_and_signal(args: list[str], sig: int, n_children: int, timeout_s: float = 120.0):
     """Start ``fgslam ARGS``, wait for ``n_children`` descendants, send ``sig`` to the parent only;
     returns (exit code, stderr, the descendants seen)."""
-    proc = subprocess.Popen([sys.executable, "-m", "fgslam", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # Ctrl-C raises KeyboardInterrupt even where the test runner's process ignores SIGINT
+    boot = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "from fgslam.cli import main; sys.exit(main())")
+    proc = subprocess.Popen([sys.executable, "-c", boot, *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
     t0 = time.monotonic()
     kids: list[int] = []
     while time.monotonic() - t0 < timeout_s and proc.poll() is None:
@@ -274,7 +279,7 @@ def test_compare_workers_die_with_it_and_the_previous_result_stays(tmp_path, lon
 def test_campaign_workers_die_with_a_killed_campaign(tmp_path):
     """Case 5 for the Dask workers of a campaign: SIGKILL of `fgslam campaign` leaves none."""
     pytest.importorskip("distributed")
-    rc, err, kids = _start_and_signal(["campaign", "--worlds", "my2022", "--seeds", "0-1", "--set",
+    rc, _, kids = _start_and_signal(["campaign", "--worlds", "my2022", "--seeds", "0-1", "--set",
                                        "traverse.distance_m=3", "--workers", "1", "--out", str(tmp_path / "camp")],
                                       signal.SIGKILL, n_children=2)
     assert rc == -9 and not _alive(kids), f"Dask processes {_alive(kids)} outlived the campaign"

@@ -116,18 +116,16 @@ def run_cmd(
             "backend_config": backend_config_dict(be),
         }
         write_run_outputs(od.staging, res, gt, met, used)
-        items = [(inputs.name, inputs, gt, {key: res}, res.attempts)]
-        if rrd_staged is not None:
+        if rrd is not None:  # in --out: part of the directory; elsewhere: its own atomic file
             from fgslam.viz.rerun_log import write_rrd
 
-            write_rrd(rrd_staged, items)
-        files = od.commit()
-    if rrd is not None and rrd_staged is None:
-        from fgslam.viz.rerun_log import write_rrd
-
-        with atomic_path(rrd, "--rrd") as tmp:
-            write_rrd(tmp, items)
-        files.append(rrd)
+            items = [(inputs.name, inputs, gt, {key: res}, res.attempts)]
+            if rrd_staged is not None:
+                write_rrd(rrd_staged, items)
+            else:
+                with atomic_path(rrd, "--rrd") as tmp:
+                    write_rrd(tmp, items)
+        files = od.commit() + ([rrd] if rrd is not None and rrd_staged is None else [])
     if "ate" in met:
         console.print(f"{key}: ATE {met['ate']['rmse']:.3f} m, fixes {met['fixes']['fixes']} "
                       f"({met['fixes']['accepted']} accepted), wall {res.wall_s:.1f} s")

@@ -33,6 +33,7 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Self
 
 from fgslam.errors import FgslamError
 
@@ -58,7 +59,7 @@ class OutputDirError(FgslamError):
 
 
 def _utc_now() -> str:
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
 
 def _fsync(path: Path) -> None:
@@ -181,7 +182,7 @@ class OutputDir:
         self._previous: dict | None = None
 
     # -- entering: path, lock, what is there -----------------------------------------------------
-    def __enter__(self) -> OutputDir:
+    def __enter__(self) -> Self:
         check_output_path(self.path, self.option)
         self._created = not self.path.exists()
         try:
