@@ -240,6 +240,17 @@ def check_stream(inputs: RunInputs, runner):
         runner = dataclasses.replace(runner, speed_source=other)
         inputs.source["speed_source"] = other  # recorded with the results
     t_imu = np.array([m.t for m in inputs.measurements if isinstance(m, ImuSample)])
+    speed_type = CmdVel if runner.speed_source == "cmd" else WheelOdometry
+    t_speed = np.array([m.t for m in inputs.measurements if isinstance(m, speed_type)])
+    if len(t_imu) >= 2 and len(t_speed):  # where the speed input is older than it may be, nothing moves
+        edges = np.concatenate([t_speed, [t_imu[-1]]])
+        silent = float(np.sum(np.clip(np.diff(edges) - runner.max_speed_age_s, 0.0, None)))
+        silent += max(float(t_speed[0] - t_imu[0]), 0.0)
+        if silent > 0.05 * (t_imu[-1] - t_imu[0]):
+            log.warning("%s: %s is silent for %.1f s of the %.1f s stream (gaps over runner.max_speed_age_s = %g s): "
+                        "the rover is taken as stopped there; raise it if this recorder publishes speeds only "
+                        "when they change", where, topic[runner.speed_source], silent, t_imu[-1] - t_imu[0],
+                        runner.max_speed_age_s)
     if len(t_imu) >= 2:
         gaps = np.diff(t_imu)
         k = int(np.argmax(gaps))

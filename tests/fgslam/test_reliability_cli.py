@@ -128,7 +128,7 @@ def test_bad_start_options_are_named(tmp_path, synth_dir, capsys, args, message)
     assert message in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
-def test_the_imu_gap_limit_is_named_and_a_bridged_gap_is_not_driven_through(tmp_path, stream, capsys):
+def test_the_imu_gap_limit_is_named_and_a_bridged_gap_is_not_driven_through(tmp_path, stream, capsys, caplog):
     """Case 8: a one-hour pause of the whole recording: refused naming runner.max_imu_gap_s; with
     the limit raised, the rover is not driven for the hour at its last command."""
     paused = [dataclasses.replace(m, t=m.t + 3600.0) if m.t > 20.0 else m for m in stream.measurements]
@@ -139,6 +139,7 @@ def test_the_imu_gap_limit_is_named_and_a_bridged_gap_is_not_driven_through(tmp_
     assert "gap of 3600.0" in err and "runner.max_imu_gap_s = 1 s" in err and not (tmp_path / "o1").exists()
     (tmp_path / "gap.yaml").write_text("runner: {max_imu_gap_s: 4000}\n")
     assert main([*args, "--out", str(tmp_path / "o2"), "--config", str(tmp_path / "gap.yaml")]) == 0
+    assert "/cmd_vel is silent for 3599.0 s" in caplog.text and "taken as stopped" in caplog.text
     ref_dir = _input_dir(tmp_path / "ref", stream.measurements, stream.catalog)
     assert main(["run", str(ref_dir), "--backend", "dr", "--no-reloc", "--out", str(tmp_path / "o4")]) == 0
     # the pause costs at most the 1 s the last command stays valid (0.25 m/s), not 3600 s of it
