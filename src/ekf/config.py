@@ -11,62 +11,66 @@ plus, for slip, a forward and lateral variance proportional to the distance driv
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
 from reloc.calibration import CalibrationConfig
-from reloc.errors import ConfigError
+from reloc.config import Interval, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from reloc.landmark_book import LandmarkBookConfig
 
 
 @dataclass(frozen=True)
+@checked()
 class MotionNoiseConfig:
     """Dynamic process noise. Translation sigmas in m/sqrt(s), rotation sigmas in rad/sqrt(s)."""
 
     # slip: sigma = this * sqrt(distance driven), m/sqrt(m). Slip is a wheel-soil bias correlated
     # over metres to the whole traverse, so a per-time sigma alone makes a slow rover far too
     # confident (my2022, 0.08 m/s: inside 3 sigma 71 %, NEES 11.9; with these 100 %, NEES 1.2)
-    fwd_per_sqrtm: float = 0.03
-    lat_per_sqrtm: float = 0.015  # lateral (vertical: the per-speed terms; z follows the terrain)
+    fwd_per_sqrtm: NonNegative = 0.03
+    lat_per_sqrtm: NonNegative = 0.015  # lateral (vertical: the per-speed terms; z follows the terrain)
     # slip grows with the slope: the forward sigma per sqrt(m) grows by this per rad of pitch
     # (added in quadrature), as in the smoother's odometry model
-    fwd_per_sqrtm_per_rad: float = 1.5
-    fwd_floor: float = 0.001  # forward (base_link x) noise at rest
-    fwd_per_speed: float = 0.03  # ... per m/s of speed (slip, speed error)
-    lat_floor: float = 0.001  # lateral (y) noise at rest
-    lat_per_speed: float = 0.015  # ... per m/s of speed (side slip)
-    lat_per_turn: float = 0.015  # ... per rad/s of turn rate (skid while turning)
-    vert_floor: float = 0.001  # vertical (z) noise at rest
-    vert_per_speed: float = 0.015  # ... per m/s of speed (terrain following)
-    trans_per_rough: float = 0.025  # added to all three per (m/s speed x rad/s roughness)
-    rot_floor: float = 0.00075  # attitude noise at rest (gyro angle random walk)
-    rot_per_turn: float = 0.005  # ... per rad/s of turn rate (scale-factor error)
-    rot_per_rough: float = 0.005  # ... per rad/s of roll/pitch rate
+    fwd_per_sqrtm_per_rad: NonNegative = 1.5
+    fwd_floor: NonNegative = 0.001  # forward (base_link x) noise at rest
+    fwd_per_speed: NonNegative = 0.03  # ... per m/s of speed (slip, speed error)
+    lat_floor: NonNegative = 0.001  # lateral (y) noise at rest
+    lat_per_speed: NonNegative = 0.015  # ... per m/s of speed (side slip)
+    lat_per_turn: NonNegative = 0.015  # ... per rad/s of turn rate (skid while turning)
+    vert_floor: NonNegative = 0.001  # vertical (z) noise at rest
+    vert_per_speed: NonNegative = 0.015  # ... per m/s of speed (terrain following)
+    trans_per_rough: NonNegative = 0.025  # added to all three per (m/s speed x rad/s roughness)
+    rot_floor: NonNegative = 0.00075  # attitude noise at rest (gyro angle random walk)
+    rot_per_turn: NonNegative = 0.005  # ... per rad/s of turn rate (scale-factor error)
+    rot_per_rough: NonNegative = 0.005  # ... per rad/s of roll/pitch rate
 
 
 @dataclass(frozen=True)
+@checked()
 class FixGateConfig:
     """Gates of the planar global fix (the reference design's distance/yaw gate + Mahalanobis)."""
 
-    distance_m: float = 3.0  # |fix xy - estimate xy at t_meas| above this -> rejected
-    yaw_deg: float = 15.0  # |fix yaw - estimate yaw| above this -> rejected
-    chi2: float = 16.27  # squared Mahalanobis distance (3 dof, 99.9 %) above this -> rejected
+    distance_m: Positive = 3.0  # |fix xy - estimate xy at t_meas| above this -> rejected
+    yaw_deg: Annotated[float, Interval(gt=0, le=180)] = 15.0  # |fix yaw - estimate yaw| above this -> rejected
+    chi2: Positive = 16.27  # squared Mahalanobis distance (3 dof, 99.9 %) above this -> rejected
     # Fixes come from matching the filter's own map against one catalog, so their errors are
     # correlated in time; a fix's covariance is multiplied by (1 + number of fixes applied with
     # t_meas within this many seconds before it), so a burst of fixes is not counted as
     # independent information. 0 disables.
-    correlation_s: float = 30.0
+    correlation_s: NonNegative = 30.0
     # Recovery of an overconfident filter: when the Mahalanobis gate has rejected consensus_n
     # fixes within consensus_window_s whose innovations agree (every xy innovation within
     # consensus_tol_m of their mean, yaw within consensus_tol_deg), the filter, not the fixes, is
     # wrong: the pose covariance is inflated by the innovation and the fix applied. 0 disables.
-    consensus_n: int = 3
-    consensus_window_s: float = 30.0
-    consensus_tol_m: float = 0.3
-    consensus_tol_deg: float = 2.0
+    consensus_n: NonNegativeInt = 3
+    consensus_window_s: Positive = 30.0
+    consensus_tol_m: Positive = 0.3
+    consensus_tol_deg: Positive = 2.0
 
 
 @dataclass(frozen=True)
+@checked()
 class EkfConfig:
     """Everything the filter needs; see docs/ekf.md for the model."""
 
@@ -85,33 +89,18 @@ class EkfConfig:
     # compatibility check, and an ambiguous scene is where a wrong pair hides (my2022: one such
     # pair after a steep slope moved the rover 0.26 m the wrong way, EKF ATE 0.377 m -> 0.028 m)
     skip_lone_ambiguous_pair: bool = True
-    rock_cov_scale: float = 1.0  # the detector's reported rock covariance is multiplied by this
-    attitude_sigma_rad: float = 0.01  # roll/pitch pseudo-measurement from the IMU's gravity reference
+    rock_cov_scale: Positive = 1.0  # the detector's reported rock covariance is multiplied by this
+    attitude_sigma_rad: Positive = 0.01  # roll/pitch pseudo-measurement from the IMU's gravity reference
     attitude_period_s: float = 1.0  # how often it is applied; <= 0 disables it
-    landmark_period_s: float = 0.2  # rock frames closer than this to the last used one are skipped
-    candidate_margin_m: float = 1.0  # landmarks predicted within max_range + margin are candidates
+    landmark_period_s: NonNegative = 0.2  # rock frames closer than this to the last used one are skipped
+    candidate_margin_m: NonNegative = 1.0  # landmarks predicted within max_range + margin are candidates
     # bound on the state; beyond it the stalest landmarks are marginalised. Each update costs
     # ~N^2 (N = 6 + 3 x landmarks). On the dense my2020 yard (seed 0, no fixes) 300 -> 150 took the
     # pass from 28 s to 11 s and the ATE from 0.057 to 0.008 m (100: 0.031, 200: 0.042); my2021,
     # my2022 and cnes kept their ATE (0.018 / 0.028 / 0.030 m)
-    max_landmarks: int = 150
-    history_s: float = 30.0  # late fixes older than this (vs the newest input) are rejected
-    checkpoint_period_s: float = 2.0  # state snapshots for roll-back (each a copy of P), this far apart
-    future_tolerance_s: float = 0.1  # a fix up to this far ahead of the filter is applied now
-    trajectory_period_s: float = 0.0  # pose history sampling; 0 -> every step
-    blas_threads: int = 1  # BLAS threads during updates (see ekf.blas); 0 -> library default
-
-    def __post_init__(self) -> None:
-        checks = [
-            (self.max_landmarks >= 1, f"max_landmarks must be >= 1, got {self.max_landmarks}"),
-            (self.history_s > 0, f"history_s must be > 0, got {self.history_s}"),
-            (self.checkpoint_period_s > 0, f"checkpoint_period_s must be > 0, got {self.checkpoint_period_s}"),
-            (self.attitude_sigma_rad > 0, f"attitude_sigma_rad must be > 0, got {self.attitude_sigma_rad}"),
-            (self.landmark_period_s >= 0, f"landmark_period_s must be >= 0, got {self.landmark_period_s}"),
-            (self.rock_cov_scale > 0, f"rock_cov_scale must be > 0, got {self.rock_cov_scale}"),
-            (self.blas_threads >= 0, f"blas_threads must be >= 0, got {self.blas_threads}"),
-            (all(v >= 0 for v in vars(self.motion).values()), "motion noise parameters must be >= 0"),
-        ]
-        for ok, msg in checks:
-            if not ok:
-                raise ConfigError(f"invalid EkfConfig: {msg}")
+    max_landmarks: PositiveInt = 150
+    history_s: Positive = 30.0  # late fixes older than this (vs the newest input) are rejected
+    checkpoint_period_s: Positive = 2.0  # state snapshots for roll-back (each a copy of P), this far apart
+    future_tolerance_s: NonNegative = 0.1  # a fix up to this far ahead of the filter is applied now
+    trajectory_period_s: NonNegative = 0.0  # pose history sampling; 0 -> every step
+    blas_threads: NonNegativeInt = 1  # BLAS threads during updates (see ekf.blas); 0 -> library default

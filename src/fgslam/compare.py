@@ -23,6 +23,7 @@ from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, Relocalizer, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
 from reloc.backend import Trajectory
+from reloc.config import Positive, PositiveInt, checked
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,7 @@ class CompareError(FgslamError):
 
 
 @dataclass(frozen=True)
+@checked(CompareError)
 class CompareConfig:
     """Which back-ends, the reference pass for the shared fixes, and the stage configs."""
 
@@ -43,8 +45,17 @@ class CompareConfig:
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     relocalizer: RelocalizerConfig = field(default_factory=RelocalizerConfig)
     backend_overrides: dict = field(default_factory=dict)  # name -> config overrides
-    rpe_delta_m: float = 10.0
-    workers: int = 2  # back-end passes run on this many forked processes (1: in this process)
+    rpe_delta_m: Positive = 10.0
+    workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
+
+    def __post_init__(self) -> None:
+        from fgslam.backends.registry import BACKEND_NAMES, backend_config
+
+        unknown = [b for b in (*self.backends, self.reference_backend) if b not in BACKEND_NAMES]
+        if unknown:
+            raise CompareError(f"unknown back-end(s) {unknown} in backends/reference_backend; choose from {list(BACKEND_NAMES)}")
+        for name, overrides in self.backend_overrides.items():
+            backend_config(name, overrides, where=f"backend_overrides.{name}.")
 
 
 def run_key(backend: str, reloc: bool) -> str:

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from fgslam.errors import InputFileError
 from reloc.backend import PoseEstimate, Trajectory, known_start_cov
-from reloc.measurements import GroundTruthPose, RockCatalog
+from reloc.measurements import CmdVel, GroundTruthPose, ImuSample, RockCatalog, WheelOdometry
 
 log = logging.getLogger(__name__)
 
@@ -51,18 +51,72 @@ def start_pose_from_truth(gt: GroundTruthPose) -> PoseEstimate:
     return PoseEstimate(gt.t, T, known_start_cov())
 
 
-def start_pose_from_xyyaw(t: float, x: float, y: float, yaw: float, z: float = 0.0) -> PoseEstimate:
-    """Known planar start pose (m, m, rad) at ``t``."""
+@dataclass(frozen=True)
+class StartSpec:
+    """A start pose given by the user (``--start``): x, y, yaw and optionally z (m, rad), and/or
+    its 1-sigma (``--start-sigma``): xy, yaw and optionally z (m, rad). None: not given."""
+
+    xyyaw: tuple[float, float, float] | None = None
+    z_m: float | None = None
+    sigma_xy_m: float | None = None
+    sigma_yaw_rad: float | None = None
+    sigma_z_m: float | None = None
+
+    def cov(self) -> np.ndarray:
+        """(6, 6) start covariance over ``[dp_world, dtheta_world]`` (see reloc.backend)."""
+        cov = known_start_cov()
+        if self.sigma_xy_m is not None:
+            z = self.sigma_xy_m if self.sigma_z_m is None else self.sigma_z_m
+            cov[0, 0] = cov[1, 1] = self.sigma_xy_m**2
+            cov[2, 2] = z**2
+        if self.sigma_yaw_rad is not None:
+            cov[5, 5] = self.sigma_yaw_rad**2
+        return cov
+
+
+def start_pose_from_xyyaw(t: float, x: float, y: float, yaw: float, z: float = 0.0,
+                          roll_pitch_rad: tuple[float, float] = (0.0, 0.0), cov: np.ndarray | None = None) -> PoseEstimate:
+    """Known start pose at ``t``: position (m), yaw (rad) and roll/pitch (rad, e.g. the IMU's)."""
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
+    T[:3, :3] = Rotation.from_euler("ZYX", [yaw, roll_pitch_rad[1], roll_pitch_rad[0]]).as_matrix()
     T[:3, 3] = [x, y, z]
-    return PoseEstimate(float(t), T, known_start_cov())
+    return PoseEstimate(float(t), T, known_start_cov() if cov is None else cov)
 
 
-def _initial_from_stream(measurements: list, where: str) -> PoseEstimate:
-    for m in measurements:
-        if isinstance(m, GroundTruthPose):
-            return start_pose_from_truth(m)
+def _first_of(measurements, cls: type):
+    """The stream's first measurement of type ``cls`` (a bag stream reads only its topic), or None."""
+    first_of = getattr(measurements, "first_of", None)
+    if first_of is not None:
+        return first_of(cls)
+    return next((m for m in measurements if isinstance(m, cls)), None)
+
+
+def _given_start(measurements: list, start: StartSpec, where: str) -> PoseEstimate:
+    """The user's start pose: x, y, (z,) yaw as given, roll and pitch from the first IMU sample's
+    gravity-referenced attitude (its yaw is arbitrary), at the first measurement's time."""
+    imu = _first_of(measurements, ImuSample)
+    roll_pitch = (0.0, 0.0)
+    if imu is not None:
+        _, pitch, roll = Rotation.from_quat(imu.quat_xyzw).as_euler("ZYX")
+        roll_pitch = (float(roll), float(pitch))
+    x, y, yaw = start.xyyaw
+    z = 0.0 if start.z_m is None else start.z_m
+    if start.z_m is None:
+        gt = _first_of(measurements, GroundTruthPose)
+        if gt is not None and abs(gt.position_m[2]) > 0.1:
+            log.warning("%s: --start gives no z, so the start is at z = 0 m while the first ground truth is at "
+                        "z = %.2f m: every error against it includes that offset; give --start X,Y,Z,YAW",
+                        where, gt.position_m[2])
+    return start_pose_from_xyyaw(next(iter(measurements)).t, x, y, yaw, z, roll_pitch, start.cov())
+
+
+def _initial_from_stream(measurements: list, where: str, start: StartSpec) -> PoseEstimate:
+    if start.xyyaw is not None:
+        return _given_start(measurements, start, where)
+    gt = _first_of(measurements, GroundTruthPose)
+    if gt is not None:
+        pose = start_pose_from_truth(gt)
+        return PoseEstimate(pose.t, pose.T_world_base, start.cov())
     raise InputFileError(f"{where}: no /ground_truth message to take the start pose from; give --start X,Y,YAW")
 
 
@@ -111,17 +165,21 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
     return None
 
 
-def load_sim_dir(path: Path, start_xyyaw: tuple[float, float, float] | None = None) -> RunInputs:
-    """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png, rocks_true.csv."""
+def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
+    """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
+    rocks_true.csv (refused when its manifest says it was not completely written)."""
     import yaml
+
+    from fgslam.io.outdir import require_complete
 
     path = Path(path)
     if not path.is_dir():
         raise InputFileError(f"{path}: not a directory (expected the output of `fgslam sim`)")
+    require_complete(path, "sim")
     for needed in ("bag", "catalog.csv"):
         if not (path / needed).exists():
             raise InputFileError(f"{path}: missing {needed} (expected the output of `fgslam sim`)")
-    inputs = load_bag(path / "bag", path / "catalog.csv", start_xyyaw=start_xyyaw, name=path.name)
+    inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name)
     world_yaml: dict = {}
     if (path / "world.yaml").exists():
         try:
@@ -144,15 +202,14 @@ def load_sim_dir(path: Path, start_xyyaw: tuple[float, float, float] | None = No
     return inputs
 
 
-def load_bag(
-    bag: Path, catalog_csv: Path, start_xyyaw: tuple[float, float, float] | None = None, name: str | None = None,
-    stream: bool | None = None,
-) -> RunInputs:
-    """Read any ROS 2 bag with the fgslam topics plus an orbital catalog CSV (x,y,size,score).
-    ``stream``: iterate the bag from disk at every pass (True), read it into memory once (False),
-    or decide by its size (None: stream above :data:`STREAM_ABOVE_MESSAGES` messages)."""
+def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name: str | None = None,
+             stream: bool | None = None) -> RunInputs:
+    """Read any ROS 2 bag with the fgslam topics plus an orbital catalog CSV (x,y,size,score);
+    the start pose is the first ground truth unless ``start`` gives one. ``stream``: iterate the
+    bag from disk at every pass (True), read it into memory once (False), or decide by its size
+    (None: stream above :data:`STREAM_ABOVE_MESSAGES` messages)."""
     from fgslam.io.bag_reader import BagSource
-    from fgslam.io.catalog_csv import read_catalog_csv
+    from fgslam.io.catalog_csv import MIN_CATALOG_ROCKS, read_catalog_csv
 
     bag, catalog_csv = Path(bag), Path(catalog_csv)
     if not bag.exists():
@@ -166,13 +223,9 @@ def load_bag(
     if not stream and not measurements:
         raise InputFileError(f"{bag}: the bag holds no measurements")
     catalog = read_catalog_csv(catalog_csv)
-    if len(catalog) < 3:
-        raise InputFileError(f"{catalog_csv}: the catalog holds {len(catalog)} rocks; at least 3 are needed")
-    if start_xyyaw is not None:
-        t0 = source.first_stamp_s() if stream else measurements[0].t
-        initial = start_pose_from_xyyaw(t0, *start_xyyaw)
-    else:
-        initial = _initial_from_stream(source.ground_truth() if stream else measurements, str(bag))
+    if len(catalog) < MIN_CATALOG_ROCKS:
+        raise InputFileError(f"{catalog_csv}: the catalog holds {len(catalog)} rocks; at least {MIN_CATALOG_ROCKS} are needed")
+    initial = _initial_from_stream(measurements, str(bag), start or StartSpec())
     return RunInputs(
         name=name or bag.stem, measurements=measurements, catalog=catalog, initial=initial,
         source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv), "streamed": bool(stream),
@@ -203,3 +256,59 @@ def stream_size(inputs: RunInputs) -> str:
     if counts is not None:
         return f"{sum(counts.values())} messages, streamed"
     return f"{len(inputs.measurements)} measurements"
+
+
+def _motion_stamps(measurements) -> dict[type, list[float]]:
+    """Stamps of the commands, wheel odometry and IMU samples, in one pass (a bag stream reads only
+    those topics)."""
+    only = getattr(measurements, "motion_only", None)
+    out: dict[type, list[float]] = {CmdVel: [], WheelOdometry: [], ImuSample: []}
+    for m in (only() if only is not None else measurements):
+        kind = out.get(type(m))
+        if kind is not None:
+            kind.append(m.t)
+    return out
+
+
+def check_stream(inputs: RunInputs, runner):
+    """The :class:`fgslam.runner.RunnerConfig` to run ``inputs`` with, checked before the run starts:
+    the configured speed source must be in the stream (a bag without /cmd_vel but with
+    /wheel_odom uses the wheels, with a warning, instead of standing still), and no IMU gap may
+    exceed ``runner.max_imu_gap_s`` (an error naming the gap and the key, not one mid-run)."""
+    import dataclasses
+
+    where = inputs.source.get("bag") or inputs.name
+    stamps = _motion_stamps(inputs.measurements)
+    n = {"cmd": len(stamps[CmdVel]), "wheel": len(stamps[WheelOdometry])}
+    topic = {"cmd": "/cmd_vel", "wheel": "/wheel_odom"}
+    want = runner.speed_source
+    other = "wheel" if want == "cmd" else "cmd"
+    if n[want] == 0:
+        if n[other] == 0:
+            raise InputFileError(f"{where}: no usable speed input: neither {topic['cmd']} nor {topic['wheel']} "
+                                 "holds a valid message")
+        log.warning("%s: no usable %s message: speeds come from %s (runner.speed_source: %s)",
+                    where, topic[want], topic[other], other)
+        runner = dataclasses.replace(runner, speed_source=other)
+        inputs.source["speed_source"] = other  # recorded with the results
+    t_imu = np.array(stamps[ImuSample])
+    t_speed = np.array(stamps[CmdVel if runner.speed_source == "cmd" else WheelOdometry])
+    if len(t_imu) >= 2 and len(t_speed):  # where the speed input is older than it may be, nothing moves
+        edges = np.concatenate([t_speed, [t_imu[-1]]])
+        silent = float(np.sum(np.clip(np.diff(edges) - runner.max_speed_age_s, 0.0, None)))
+        silent += max(float(t_speed[0] - t_imu[0]), 0.0)
+        if silent > 0.05 * (t_imu[-1] - t_imu[0]):
+            log.warning("%s: %s is silent for %.1f s of the %.1f s stream (gaps over runner.max_speed_age_s = %g s): "
+                        "the rover is taken as stopped there; raise it if this recorder publishes speeds only "
+                        "when they change", where, topic[runner.speed_source], silent, t_imu[-1] - t_imu[0],
+                        runner.max_speed_age_s)
+    if len(t_imu) >= 2:
+        gaps = np.diff(t_imu)
+        k = int(np.argmax(gaps))
+        if gaps[k] > runner.max_imu_gap_s:
+            raise InputFileError(
+                f"{where}: the IMU stream has a gap of {gaps[k]:.3f} s at t = {t_imu[k]:.3f} s, more than "
+                f"runner.max_imu_gap_s = {runner.max_imu_gap_s:g} s; to bridge it, raise runner.max_imu_gap_s "
+                f"in the --config file (the rover is taken as stopped where its speed input is older than "
+                f"runner.max_speed_age_s = {runner.max_speed_age_s:g} s)")
+    return runner

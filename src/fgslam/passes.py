@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import queue as queue_mod
 import threading
 from collections.abc import Callable
@@ -24,6 +25,7 @@ import numpy as np
 
 from fgslam.backends.registry import backend_class, make_backend
 from fgslam.errors import FgslamError
+from fgslam.lifetime import kill_pool, worker_initializer
 from fgslam.relocalizer import Relocalizer
 from fgslam.runner import RunnerConfig, RunResult, run_backend
 
@@ -163,7 +165,11 @@ def _run_forked(online, wave1, wave2, fixes_of, workers, on_progress) -> dict[st
     _STATE["feeds"] = {p.key: ctx.Queue() for p in wave2}
     # a replay spends much of its time waiting for the reference's fixes: it gets a process of its
     # own on top of the ``workers`` computing ones, so a waiting replay never holds a core's turn
-    with ProcessPoolExecutor(max_workers=workers + len(wave2), mp_context=ctx) as pool:
+    # the workers die with this process whatever ends it (fgslam.lifetime): killed or
+    # interrupted, a comparison leaves no orphan blocked on its queue
+    pool = ProcessPoolExecutor(max_workers=workers + len(wave2), mp_context=ctx,
+                               initializer=worker_initializer, initargs=(os.getpid(),))
+    try:
         # FIFO: the reference pass starts first, the replays next (they stream its fixes),
         # then the passes without relocalization
         order = online + wave2 + [p for p in wave1 if p.mode == "none"]
@@ -178,6 +184,10 @@ def _run_forked(online, wave1, wave2, fixes_of, workers, on_progress) -> dict[st
                 if on_progress:
                     on_progress(p.label, res.t_end)
         _drain(q, on_progress)
+    except BaseException:  # a failed pass, Ctrl-C, SIGTERM (fgslam.lifetime.Terminated): stop them all now
+        kill_pool(pool)
+        raise
+    pool.shutdown(wait=True)
     ref = results[online[0].key]
     expected = fixes_of(ref)
     for p in wave2:  # the streamed list must be the reference's list, fix for fix

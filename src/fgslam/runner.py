@@ -18,7 +18,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -27,6 +27,7 @@ from ekf.blas import blas_limit
 from fgslam.errors import FgslamError
 from fgslam.relocalizer import FixAttempt, Relocalizer
 from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, Trajectory
+from reloc.config import NonNegativeInt, Positive, checked
 from reloc.measurements import (
     CmdVel,
     GlobalFix,
@@ -45,23 +46,22 @@ class RunnerError(FgslamError):
 
 
 @dataclass(frozen=True)
+@checked(RunnerError)
 class RunnerConfig:
     """Recording rate and odometry source (defaults in code)."""
 
-    record_rate_hz: float = 10.0
-    speed_source: str = "cmd"  # "cmd" or "wheel" (see OdometryAssembler)
-    max_imu_gap_s: float = 1.0
+    record_rate_hz: Positive = 10.0
+    speed_source: Literal["cmd", "wheel"] = "cmd"  # see OdometryAssembler
+    max_imu_gap_s: Positive = 1.0
+    # a speed input older than this no longer moves the rover (a base stops without commands):
+    # a gap in /cmd_vel or /wheel_odom, or in the IMU with the limit above raised, is not driven
+    # through at the last speed
+    max_speed_age_s: Positive = 1.0
     # BLAS threads during the pass (0: library default). The back-ends and the matcher do small
     # dense algebra (<= ~1000 x 1000) one call at a time: a threaded BLAS makes it slower, and a
     # comparison already runs one pass per core (measured on my2020, iSAM2 over 150 s of stream:
     # 16.0 s of back-end time with OpenBLAS's default threads, 8.2 s with one).
-    blas_threads: int = 1
-
-    def __post_init__(self) -> None:
-        if not self.record_rate_hz > 0:
-            raise RunnerError(f"runner record_rate_hz must be > 0, got {self.record_rate_hz}")
-        if self.blas_threads < 0:
-            raise RunnerError(f"runner blas_threads must be >= 0, got {self.blas_threads}")
+    blas_threads: NonNegativeInt = 1
 
 
 @dataclass
@@ -150,7 +150,8 @@ def run_backend(
 def _run(backend, measurements, relocalizer, fixes, fix_feed, fix_sink, cfg: RunnerConfig, on_progress) -> RunResult:
     if sum(x is not None for x in (relocalizer, fixes, fix_feed)) > 1:
         raise RunnerError("give one of a relocalizer (online fixes), a fix list or a fix feed (replay), not several")
-    assembler = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s)
+    assembler = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
+                                  max_speed_age_s=cfg.max_speed_age_s)
     pending: list[tuple[float, int, GlobalFix]] = []
     for k, f in enumerate(fixes or ()):
         heapq.heappush(pending, (f.t_recv, k, f))

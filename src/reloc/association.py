@@ -17,12 +17,14 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
+from reloc.config import Ge, Interval, Positive, checked
 from reloc.errors import MeasurementError
 
 _NO_MATCH = 1e12
@@ -36,14 +38,15 @@ def _chi2_limit(confidence: float, dof: int) -> float:
 
 
 @dataclass(frozen=True)
+@checked()
 class AssociationConfig:
     """Gates of :func:`associate` (squared Mahalanobis distances, 3 dof)."""
 
-    gate_chi2: float = 11.345  # 99 % for 3 dof: a pair inside may be associated
-    new_landmark_chi2: float = 16.27  # 99.9 %: beyond this from every landmark -> new landmark
-    max_range_m: float = 12.0  # detections farther than this are ignored (stereo too noisy)
-    joint_confidence: float = 0.99  # joint-compatibility test level for chi2(3k)
-    max_size_ratio: float = 3.0  # a pair whose size estimates differ by more than this is not gated
+    gate_chi2: Positive = 11.345  # 99 % for 3 dof: a pair inside may be associated
+    new_landmark_chi2: Positive = 16.27  # 99.9 %: beyond this from every landmark -> new landmark
+    max_range_m: Positive = 12.0  # detections farther than this are ignored (stereo too noisy)
+    joint_confidence: Annotated[float, Interval(gt=0, lt=1)] = 0.99  # joint-compatibility test level for chi2(3k)
+    max_size_ratio: Annotated[float, Ge(1)] = 3.0  # a pair whose size estimates differ by more than this is not gated
 
 
 @dataclass(frozen=True)

@@ -16,19 +16,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reloc.errors import ConfigError
+from reloc.config import NonNegativeInt, checked
 
 
 @dataclass(frozen=True)
+@checked()
 class ObservationBudget:
     """Bounds per rock frame; 0 = no bound."""
 
-    max_observations: int = 0  # associated observations used in the update
-    max_new: int = 0  # new landmarks initialised
-
-    def __post_init__(self) -> None:
-        if self.max_observations < 0 or self.max_new < 0:
-            raise ConfigError(f"observation budget must be >= 0, got {self.max_observations} / {self.max_new}")
+    max_observations: NonNegativeInt = 0  # associated observations used in the update
+    max_new: NonNegativeInt = 0  # new landmarks initialised
 
 
 def select_observations(in_map: np.ndarray, cost: np.ndarray, limit: int) -> np.ndarray:

@@ -8,10 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reloc.errors import ConfigError
+from reloc.config import NonNegative, checked
 
 
 @dataclass(frozen=True)
+@checked()
 class CalibrationConfig:
     """Stereo calibration states (off when every sigma is 0). The camera's mounting rotation and
     its range scale are known only to these sigmas (a rotation vector per axis, deg; a relative
@@ -20,9 +21,9 @@ class CalibrationConfig:
     the true point ``q`` (about the base origin: the camera's 0.9 m lever arm changes a 0.15 deg
     rotation's effect by ~2 mm)."""
 
-    roll_pitch_sigma_deg: float = 0.0  # about base_link x and y
-    yaw_sigma_deg: float = 0.0  # about base_link z
-    scale_sigma: float = 0.0
+    roll_pitch_sigma_deg: NonNegative = 0.0  # about base_link x and y
+    yaw_sigma_deg: NonNegative = 0.0  # about base_link z
+    scale_sigma: NonNegative = 0.0
 
     @property
     def enabled(self) -> bool:
@@ -32,11 +33,6 @@ class CalibrationConfig:
         """(4,): rotation about x, y, z (rad) and scale."""
         rp, yaw = math.radians(self.roll_pitch_sigma_deg), math.radians(self.yaw_sigma_deg)
         return np.array([rp, rp, yaw, self.scale_sigma])
-
-    def __post_init__(self) -> None:
-        bad = {k: v for k, v in vars(self).items() if not (math.isfinite(v) and v >= 0)}
-        if bad:
-            raise ConfigError(f"calibration sigmas must be finite and >= 0, got {bad}")
 
 
 def calibration_report(rotvec_rad: np.ndarray, scale: float, rot_sigma_rad: np.ndarray, scale_sigma: float) -> dict:

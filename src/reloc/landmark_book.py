@@ -15,13 +15,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reloc.config import Positive, PositiveInt, checked
+
 
 @dataclass(frozen=True)
+@checked()
 class LandmarkBookConfig:
     """Confirmation rule for tentative landmarks."""
 
-    confirm_n_obs: int = 3  # observations (the first included) needed to confirm
-    confirm_window_s: float = 5.0  # ... within this many seconds of the first sighting
+    confirm_n_obs: PositiveInt = 3  # observations (the first included) needed to confirm
+    confirm_window_s: Positive = 5.0  # ... within this many seconds of the first sighting
 
 
 class LandmarkBook:

@@ -28,10 +28,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 
 from reloc.catalog import Catalog
+from reloc.config import Ge, Gt, Interval, Le, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from reloc.descriptors import label_triangles
 from reloc.errors import RelocError
 from reloc.hypotheses import Hypotheses, LocalTriangles, generate_hypotheses, pose_bins
@@ -57,6 +59,7 @@ class MatchInputError(RelocError, ValueError):
 
 
 @dataclass(frozen=True, slots=True)
+@checked(MatchInputError)
 class MatcherConfig:
     """Matcher parameters (defaults in code). Lengths in metres.
 
@@ -89,43 +92,37 @@ class MatcherConfig:
     before the search (the search's stages share the rest); unused without a guess.
     """
 
-    sigma_m: float = 0.1
-    side_tol_sigmas: float = 1.0
-    wide_side_tol_sigmas: float | None = 2.0
-    wide_max_hypotheses: int = 10_000
-    inlier_sigmas: float = 2.5
-    min_inlier_radius_m: float = 0.1
-    scale_tol: float = 0.02
-    size_ratio_max: float | None = 1.6
-    local_neighbours: int = 6
-    batch_triangles: int = 16
-    max_batch_triangles: int = 128
-    max_triangles: int | None = None
-    verify_per_batch: int = 8
-    verify_by_votes: int = 4
-    first_stage_factor: float = 2.0
-    refits: int = 1
-    polish_sigmas: float = 2.0
+    sigma_m: Positive = 0.1
+    side_tol_sigmas: Positive = 1.0
+    wide_side_tol_sigmas: Positive | None = 2.0
+    wide_max_hypotheses: NonNegativeInt = 10_000
+    inlier_sigmas: Positive = 2.5
+    min_inlier_radius_m: NonNegative = 0.1
+    scale_tol: Annotated[float, Interval(gt=0, lt=1)] = 0.02
+    size_ratio_max: Annotated[float, Gt(1)] | None = 1.6
+    local_neighbours: Annotated[int, Ge(2)] = 6
+    batch_triangles: PositiveInt = 16
+    max_batch_triangles: PositiveInt = 128
+    max_triangles: PositiveInt | None = None
+    verify_per_batch: PositiveInt = 8
+    verify_by_votes: NonNegativeInt = 4
+    first_stage_factor: Positive = 2.0
+    refits: NonNegativeInt = 1
+    polish_sigmas: Positive = 2.0
     growth_reach_m: tuple[float, ...] = (3.0, 6.0)
-    density_radius_m: float = 1.5
-    min_inliers: int = 5
-    max_log10_false_alarm: float = -3.0
-    early_exit_log10: float = -3.0
+    density_radius_m: Positive = 1.5
+    min_inliers: Annotated[int, Ge(3)] = 5
+    max_log10_false_alarm: Annotated[float, Le(0)] = -3.0
+    early_exit_log10: Annotated[float, Le(0)] = -3.0
     metric: bool = True
     fewest_candidates_first: bool = True
-    rank_power: float = 3.0
-    guess_share: float = 0.25
+    rank_power: NonNegative = 3.0
+    guess_share: Annotated[float, Interval(gt=0, lt=1)] = 0.25
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not (self.sigma_m > 0 and self.side_tol_sigmas > 0 and self.inlier_sigmas > 0):
-            raise MatchInputError(f"MatcherConfig sigmas must be positive: {self}")
-        if self.size_ratio_max is not None and self.size_ratio_max <= 1.0:
-            raise MatchInputError(f"MatcherConfig.size_ratio_max must be > 1, got {self.size_ratio_max}")
-        if self.local_neighbours < 2 or self.batch_triangles < 1 or self.verify_per_batch < 1:
-            raise MatchInputError(f"MatcherConfig counts out of range: {self}")
-        if not 0.0 < self.guess_share < 1.0:
-            raise MatchInputError(f"MatcherConfig.guess_share must be in (0, 1), got {self.guess_share}")
+        if any(not (math.isfinite(r) and r > 0) for r in self.growth_reach_m):
+            raise MatchInputError(f"MatcherConfig.growth_reach_m must hold finite distances > 0, got {self.growth_reach_m}")
 
     @property
     def inlier_radius_m(self) -> float:

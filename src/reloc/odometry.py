@@ -61,16 +61,26 @@ class OdometryAssembler:
 
     ``speed_source`` is "cmd" (the reference design) or "wheel" (use /wheel_odom when present).
     Steps longer than ``max_gap_s`` raise :class:`MeasurementError` (a gap in the IMU stream must
-    be visible, not bridged silently).
+    be visible, not bridged silently). A speed input is held for at most ``max_speed_age_s`` after
+    its stamp: the part of a step beyond that is not driven (a rover base stops when its commands
+    stop), so a gap is never crossed at the last speed. A step longer than that (a gap bridged by
+    a raised ``max_gap_s``) integrates every speed input received during it, each held from its
+    stamp until the next one or its expiry; a normal step uses the latest speed throughout.
     """
 
-    def __init__(self, speed_source: str = "cmd", max_gap_s: float = 1.0) -> None:
+    def __init__(self, speed_source: str = "cmd", max_gap_s: float = 1.0, max_speed_age_s: float = 1.0) -> None:
         if speed_source not in ("cmd", "wheel"):
             raise MeasurementError(f"speed_source must be 'cmd' or 'wheel', got {speed_source!r}")
+        for name, value in (("max_gap_s", max_gap_s), ("max_speed_age_s", max_speed_age_s)):
+            if not (math.isfinite(value) and value > 0):
+                raise MeasurementError(f"OdometryAssembler {name} must be finite and > 0, got {value!r}")
         self.speed_source = speed_source
         self.max_gap_s = max_gap_s
+        self.max_speed_age_s = max_speed_age_s
         self._v = 0.0
         self._w = 0.0
+        self._speed_t = -np.inf  # stamp of the speed input held
+        self._step_speeds: list[tuple[float, float, float]] = []  # (t, v, w) at the last IMU sample, then received since
         self._last_imu: ImuSample | None = None
         self._last_R: np.ndarray | None = None
         self._last_t = -np.inf
@@ -83,13 +93,10 @@ class OdometryAssembler:
     def push(self, m: CmdVel | WheelOdometry | ImuSample) -> OdometryStep | None:
         """Consume one input; return the step completed by an IMU sample, else None."""
         self._check_time(m.t, type(m).__name__)
-        if isinstance(m, CmdVel):
-            if self.speed_source == "cmd":
-                self._v, self._w = m.v_mps, m.yaw_rate_radps
-            return None
-        if isinstance(m, WheelOdometry):
-            if self.speed_source == "wheel":
-                self._v, self._w = m.v_mps, m.yaw_rate_radps
+        if isinstance(m, (CmdVel, WheelOdometry)):
+            if (self.speed_source == "cmd") == isinstance(m, CmdVel):
+                self._v, self._w, self._speed_t = m.v_mps, m.yaw_rate_radps, m.t
+                self._step_speeds.append((m.t, m.v_mps, m.yaw_rate_radps))
             return None
         if not isinstance(m, ImuSample):
             raise MeasurementError(f"OdometryAssembler cannot consume {type(m).__name__}")
@@ -100,22 +107,40 @@ class OdometryAssembler:
                 raise MeasurementError(f"duplicate IMU stamp t={m.t:.6f} s")
             if dt > self.max_gap_s:
                 raise MeasurementError(
-                    f"IMU gap of {dt:.3f} s at t={m.t:.3f} s exceeds max_gap_s={self.max_gap_s}"
+                    f"IMU gap of {dt:.3f} s at t={m.t:.3f} s exceeds the limit of {self.max_gap_s:g} s "
+                    "(runner.max_imu_gap_s in the --config file)"
                 )
         # Each sample's rotation matrix is computed once and reused as the next step's start.
         R_prev, R_curr = self._last_R, _quat_xyzw_to_matrix(m.quat_xyzw)
         self._last_imu, self._last_R = m, R_curr
+        speeds, self._step_speeds = self._step_speeds, [(self._speed_t, self._v, self._w)]
         if prev is None:
             return None
+        v, w = self._step_speed(prev.t, m.t, speeds)
         return OdometryStep(
             t0=prev.t,
             t1=m.t,
-            v_mps=self._v,
-            yaw_rate_cmd_radps=self._w,
+            v_mps=v,
+            yaw_rate_cmd_radps=w,
             R_ref_base0=R_prev,
             R_ref_base1=R_curr,
             gyro_radps=0.5 * (np.asarray(prev.gyro_radps) + np.asarray(m.gyro_radps)),
         )
+
+
+    def _step_speed(self, t0: float, t1: float, speeds: list[tuple[float, float, float]]) -> tuple[float, float]:
+        """Mean (v, yaw rate) over [t0, t1] from ``speeds`` = the input held at t0, then those received."""
+        age, dt = self.max_speed_age_s, t1 - t0
+        if dt <= age:  # the latest speed, for as much of the step as it is still valid
+            held = min(max((self._speed_t + age - t0) / dt, 0.0), 1.0)
+            return self._v * held, self._w * held
+        dist = turn = 0.0
+        for k, (ts, v, w) in enumerate(speeds):
+            start = max(ts, t0)
+            end = min(speeds[k + 1][0] if k + 1 < len(speeds) else t1, ts + age, t1)
+            if end > start:
+                dist, turn = dist + v * (end - start), turn + w * (end - start)
+        return dist / dt, turn / dt
 
 
 def pitch_rad(step: OdometryStep) -> float:

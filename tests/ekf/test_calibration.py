@@ -66,7 +66,7 @@ def test_off_by_default_and_bad_sigmas_rejected():
     ekf = EkfSlam(START)
     assert ekf.calibration() == {} and ekf.state_vector_size == 6
     assert EkfSlam(START, EkfConfig(calibration=CalibrationConfig(scale_sigma=0.01))).state_vector_size == 10
-    with pytest.raises(ConfigError, match="calibration sigmas"):
+    with pytest.raises(ConfigError, match="yaw_sigma_deg must be >= 0"):
         CalibrationConfig(yaw_sigma_deg=-1.0)
-    with pytest.raises(ConfigError, match="calibration sigmas"):
+    with pytest.raises(ConfigError, match="scale_sigma must be finite"):
         CalibrationConfig(scale_sigma=float("nan"))

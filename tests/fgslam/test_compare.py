@@ -131,3 +131,19 @@ def test_cli_sim_run_compare_end_to_end(tmp_path):
     assert runs["isam2_reloc"]["ate"]["rmse"] == pytest.approx(met["ate"]["rmse"], rel=1e-9)
     assert "| Distance [m] |" in r.stdout and (cmp_out / "compare.rrd").exists()
     assert (cmp_out / f"{sim_dir.name}_xy.png").exists()
+    # every config the commands saved is accepted back by --config, and means what was used
+    from fgslam.cli.cmd_run import load_config
+    from fgslam.cli.cmd_sim import load_sim_config
+    from fgslam.compare import CompareConfig
+    from reloc.config import config_to_dict
+
+    back = load_config(out / "config.yaml")
+    assert config_to_dict(back.runner) == used["runner"] and config_to_dict(back.relocalizer) == used["relocalizer"]
+    from fgslam.backends.registry import backend_config
+
+    assert backend_config("isam2", back.backend_overrides.get("isam2")) == backend_config("isam2", used["backend_config"])
+    assert load_config(cmp_out / "config.yaml") == CompareConfig()
+    world = yaml.safe_load((sim_dir / "world.yaml").read_text())
+    assert config_to_dict(load_sim_config(None, None, None, sim_dir / "world.yaml")) == world["config"]
+    for d in (sim_dir, out, cmp_out):
+        assert json.loads((d / "manifest.json").read_text())["status"] == "complete"

@@ -4,9 +4,13 @@ the same inputs: same measurements and the same start pose and covariance (the d
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
+import pytest
 
 from fgslam.inputs import from_sim_run, load_sim_dir
+from fgslam.io.outdir import OutputDirError, read_manifest
 from fgslam.io.sim_dir import write_sim_dir
 from reloc.backend import known_start_cov
 from reloc.measurements import RockObservations
@@ -31,3 +35,15 @@ def test_run_in_memory_and_its_directory_are_the_same_inputs(tmp_path):
     for x, y in zip(ra, rb):
         np.testing.assert_array_equal(x.xyz_base_m, y.xyz_base_m)
         np.testing.assert_array_equal(x.cov_base_m2, y.cov_base_m2)
+    # written whole, and not replaced unless asked (issue 17, case 4)
+    manifest = read_manifest(tmp_path / "run")
+    assert manifest["kind"] == "sim" and manifest["status"] == "complete"
+    assert {"bag/metadata.yaml", "catalog.csv", "world.yaml", "orbital.png", "rocks_true.csv"} <= set(manifest["files"])
+    with pytest.raises(OutputDirError, match="already holds bag"):
+        write_sim_dir(run, tmp_path / "run")
+    summary = write_sim_dir(run, tmp_path / "run", overwrite=True)
+    assert summary.path == tmp_path / "run" / "bag" and read_manifest(tmp_path / "run")["files"] == manifest["files"]
+    # a directory whose writing was interrupted is not read as a traverse
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps({**manifest, "status": "writing"}))
+    with pytest.raises(OutputDirError, match="incomplete `fgslam sim` output"):
+        load_sim_dir(tmp_path / "run")

@@ -48,6 +48,7 @@ def test_score_optional_and_columns_in_any_order(tmp_path):
         ("x,y,size,score\n1,2,0.5\n", "line 2: 3 field(s), header has 4"),
         ("x,y,size,score\n1,2,-0.5,1\n", "line 2: size must be a positive diameter"),
         ("x,x,y,size\n1,2,3,4\n", "duplicate column(s) x"),
+        ("x,y,size\n1,2,0.5\n3,4,0.5\n1.0,2.0,0.7\n", "line 4: rock at (1, 2) repeats line 2 (1 duplicate row(s)"),
     ],
 )
 def test_malformed_files_name_file_line_and_problem(tmp_path, text, needle):
@@ -62,3 +63,14 @@ def test_malformed_files_name_file_line_and_problem(tmp_path, text, needle):
 def test_missing_file(tmp_path):
     with pytest.raises(InputFileError, match="cannot read catalog"):
         read_catalog_csv(tmp_path / "nope.csv")
+
+
+def test_a_catalog_listed_twice_is_refused(tmp_path, rng):
+    """Issue 17, case 8: every row duplicated (a file concatenated with itself) is no catalog."""
+    cat = RockCatalog(xy_m=rng.uniform(-20, 20, (50, 2)), size_m=rng.uniform(0.2, 1.0, 50), score=np.ones(50))
+    path = tmp_path / "catalog.csv"
+    write_catalog_csv(path, cat)
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines + lines[1:]) + "\n")
+    with pytest.raises(InputFileError, match=r"line 52: rock at .* repeats line 2 \(50 duplicate row\(s\) in all\)"):
+        read_catalog_csv(path)

@@ -80,8 +80,8 @@ def test_select_local_map_keeps_seen_landmarks_near_the_rover():
     lm = LandmarkMap(np.arange(4), xyz, np.tile(np.eye(3), (4, 1, 1)), np.ones(4), np.array([3, 1, 5, 9]))
     idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=2, max_radius_m=20.0))
     assert list(idx) == [0, 2]
-    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=1, max_landmarks=2))
-    assert list(idx) == [0, 1]
+    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=1, max_landmarks=3))
+    assert list(idx) == [0, 1, 2]
 
 
 def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):

@@ -69,6 +69,30 @@ def test_odometry_rejects_out_of_order_and_duplicates():
         asm.push(ImuSample(1.0, [0, 0, 0, 1]))
 
 
+def test_a_silent_speed_input_stops_the_rover_and_long_steps_integrate_every_command():
+    """Issue 17, case 8: a command holds at most max_speed_age_s, so a bridged one-hour gap is
+    not driven at the last speed; a step spanning a gap integrates the commands received in it."""
+    q = [0, 0, 0, 1]
+    asm = OdometryAssembler(max_gap_s=4000.0, max_speed_age_s=1.0)
+    asm.push(CmdVel(0.0, 0.2, 0.01))
+    asm.push(ImuSample(0.0, q))
+    assert asm.push(ImuSample(0.5, q)).v_mps == 0.2  # a normal step: the latest command
+    step = asm.push(ImuSample(0.75, q))  # the command (t = 0) expires at 1.0 s: still valid
+    assert step.v_mps == 0.2
+    step = asm.push(ImuSample(1.25, q))  # valid for half of this step
+    assert step.v_mps == pytest.approx(0.1) and step.yaw_rate_cmd_radps == pytest.approx(0.005)
+    step = asm.push(ImuSample(3601.25, q))
+    assert step.v_mps * step.dt == 0.0  # an hour without commands: not 720 m
+    for k in range(10):  # commands flowing through a long IMU gap: 0.1 m/s for 10 s, then stop
+        asm.push(CmdVel(3602.0 + k, 0.1 if k < 9 else 0.0, 0.0))
+    step = asm.push(ImuSample(3700.0, q))
+    assert step.v_mps * step.dt == pytest.approx(0.9)
+    a = OdometryAssembler()
+    a.push(ImuSample(0.0, q))
+    with pytest.raises(MeasurementError, match=r"IMU gap of 5.000 s .* limit of 1 s \(runner.max_imu_gap_s"):
+        a.push(ImuSample(5.0, q))
+
+
 def test_config_override_and_unknown_key():
     from dataclasses import dataclass, field
 

@@ -22,19 +22,21 @@ from reloc.backend import (
     PoseEstimate,
     Trajectory,
 )
+from reloc.config import NonNegative, Positive, checked
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep
 
 
 @dataclass(frozen=True)
+@checked()
 class DeadReckoningConfig:
     """Noise model and map-building parameters (defaults in code)."""
 
-    sigma_speed_frac: float = 0.03  # 1-sigma relative speed error (slip), per unit distance
-    sigma_lateral_frac: float = 0.01  # 1-sigma lateral drift per metre travelled
-    sigma_yaw_rate_radps: float = 0.002  # 1-sigma random-walk density of heading, rad/sqrt(s)
-    sigma_z_frac: float = 0.02
-    association_gate_m: float = 0.6  # nearest landmark within this distance is the same rock
+    sigma_speed_frac: NonNegative = 0.03  # 1-sigma relative speed error (slip), per unit distance
+    sigma_lateral_frac: NonNegative = 0.01  # 1-sigma lateral drift per metre travelled
+    sigma_yaw_rate_radps: NonNegative = 0.002  # 1-sigma random-walk density of heading, rad/sqrt(s)
+    sigma_z_frac: NonNegative = 0.02
+    association_gate_m: Positive = 0.6  # nearest landmark within this distance is the same rock
     use_fixes: bool = False
     build_map: bool = True  # False: ignore rock frames (the odometry-only curve needs no map)
 

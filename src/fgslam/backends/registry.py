@@ -67,14 +67,26 @@ def _config_class(cls: type) -> type | None:
     return ann if dataclasses.is_dataclass(ann) else None
 
 
+def backend_config(name: str, overrides: dict | None = None, where: str | None = None) -> Any:
+    """The config of back-end ``name``: its defaults with ``overrides`` applied, every key checked
+    (:func:`reloc.config.config_from_dict`); None for a back-end without a config class. Errors
+    name the keys under ``where`` (default "<name>.")."""
+    where = f"{name}." if where is None else where
+    if overrides is not None and not isinstance(overrides, dict):
+        raise BackendUnavailableError(f"{where.rstrip('.')} must be a mapping of config overrides, got {overrides!r}")
+    if name not in _SPECS:
+        raise BackendUnavailableError(f"{where.rstrip('.')}: unknown back-end {name!r}; choose from {list(_SPECS)}")
+    cfg_cls = _config_class(backend_class(name))
+    if cfg_cls is None:
+        if overrides:
+            raise BackendUnavailableError(f"back-end {name!r} takes no config overrides, got {sorted(overrides)}")
+        return None
+    return config_from_dict(cfg_cls, overrides, where=where)
+
+
 def make_backend(name: str, initial: PoseEstimate, overrides: dict | None = None) -> Backend:
     """Construct back-end ``name`` at ``initial`` with config ``overrides`` applied to its defaults."""
-    cls = backend_class(name)
-    cfg_cls = _config_class(cls)
-    config: Any = config_from_dict(cfg_cls, overrides, where=f"{name}.") if cfg_cls else None
-    if overrides and cfg_cls is None:
-        raise BackendUnavailableError(f"back-end {name!r} takes no config overrides, got {sorted(overrides)}")
-    return cls(initial, config)
+    return backend_class(name)(initial, backend_config(name, overrides))
 
 
 def backend_config_dict(backend: Backend) -> dict:

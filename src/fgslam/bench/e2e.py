@@ -59,7 +59,7 @@ def run_e2e(sim_cfg, out: Path, compare_cfg: CompareConfig | None = None, image_
     runs["image"] = with_image_detections(runs["statistical"], image_cfg, progress=step)
     step = tick("writing both simulator directories", len(SOURCES))
     for name in SOURCES:
-        write_sim_dir(runs[name], out / name)
+        write_sim_dir(runs[name], out / name, overwrite=True)  # this benchmark's own intermediate output
         step()
     comparisons = []
     for name in SOURCES:

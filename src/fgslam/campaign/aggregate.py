@@ -176,8 +176,8 @@ def write_summary(out_dir: Path, records: list[dict], extra: dict | None = None)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = aggregate(records)
-    md = out_dir / "summary.md"
-    md.write_text(summary_markdown(summary, records))
-    js = out_dir / "summary.json"
-    js.write_text(json.dumps(clean({**summary, **(extra or {})}), indent=2, allow_nan=False))
+    from fgslam.io.outdir import write_text_atomic
+
+    md = write_text_atomic(out_dir / "summary.md", summary_markdown(summary, records))
+    js = write_text_atomic(out_dir / "summary.json", json.dumps(clean({**summary, **(extra or {})}), indent=2, allow_nan=False))
     return md, js

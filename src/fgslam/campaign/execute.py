@@ -20,6 +20,7 @@ from pathlib import Path
 from fgslam.campaign.results import ResultStore, identity, latest
 from fgslam.campaign.spec import CampaignError, CampaignSpec, expand
 from fgslam.campaign.task import run_task
+from fgslam.io.outdir import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +100,7 @@ def run_campaign(
     tasks = expand(spec)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "campaign.json").write_text(json.dumps(spec.to_dict(), indent=2, sort_keys=True, default=str))
+    write_text_atomic(out_dir / "campaign.json", json.dumps(spec.to_dict(), indent=2, sort_keys=True, default=str))
     store = ResultStore(out_dir)
     done = store.done()
     todo = [t for t in tasks if identity(t) not in done]

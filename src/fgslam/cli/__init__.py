@@ -36,11 +36,22 @@ def _error_types() -> tuple[type[BaseException], ...]:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: run the typer app, map library errors to exit code 2."""
+    from fgslam.lifetime import Terminated, terminate_on_sigterm
+
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        result = app(args=argv, standalone_mode=False)
+        with terminate_on_sigterm():  # SIGTERM unwinds like Ctrl-C: workers stopped, partial outputs removed
+            result = app(args=argv, standalone_mode=False)
         if isinstance(result, int):  # click returns typer.Exit's code in non-standalone mode
+            if result == 130:  # typer turns Ctrl-C into Exit(130)
+                sys.stderr.write("fgslam: interrupted\n")
             return result
+    except Terminated as exc:
+        sys.stderr.write("fgslam: terminated\n")
+        return 128 + exc.signum
+    except KeyboardInterrupt:
+        sys.stderr.write("fgslam: interrupted\n")
+        return 130
     except SystemExit as exc:  # typer/click exits for --help and usage errors
         return int(exc.code or 0)
     except _error_types() as exc:
@@ -51,9 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         if "ClickException" in names:
             exc.show()
             return int(exc.exit_code)
-        if "Abort" in names:
-            sys.stderr.write("fgslam: aborted\n")
-            return 1
+        if "Abort" in names:  # click's form of Ctrl-C
+            sys.stderr.write("fgslam: interrupted\n")
+            return 130
         raise
     return 0
 

@@ -40,11 +40,24 @@ def print_tables(tables: Iterable[tuple[str, Sequence[str], Sequence[Sequence[st
         console.print(table)
 
 
-def write_results(out: Path | None, results: dict, markdown: str, err: Console) -> None:
-    """Write ``out/results.json`` and ``out/table.md`` when ``out`` is given."""
+def check_out(out: Path | None) -> None:
+    """Refuse an unusable --out before the benchmark runs (a file, not writable)."""
+    if out is not None:
+        from fgslam.io.outdir import check_output_path
+
+        check_output_path(out, "--out")
+
+
+def write_results(out: Path | None, results: dict, markdown: str | None, err: Console, json_default=float) -> None:
+    """Write ``out/results.json`` (and ``out/table.md`` when ``markdown`` is given) when ``out``
+    is given, as a whole (:class:`fgslam.io.outdir.OutputDir`: staged, then committed)."""
     if out is None:
         return
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
-    (out / "table.md").write_text(markdown)
-    err.print(f"wrote {out / 'results.json'} and {out / 'table.md'}")
+    from fgslam.io.outdir import OutputDir
+
+    with OutputDir(out, "bench") as od:
+        (od.staging / "results.json").write_text(json.dumps(results, indent=2, default=json_default))
+        if markdown is not None:
+            (od.staging / "table.md").write_text(markdown)
+        files = od.commit()
+    err.print("wrote " + " and ".join(str(f) for f in files))

@@ -24,7 +24,9 @@ def bench_detect_cmd(
 
     from rich.console import Console
 
-    from fgslam.cli.bench_output import print_tables, progress_ticks, write_results
+    from fgslam.cli.bench_output import check_out, print_tables, progress_ticks, write_results
+
+    check_out(out)
 
     from fgslam.bench.detect import DetectBenchConfig, markdown, result_rows, run_detect_bench, timing_rows
 

@@ -30,7 +30,7 @@ def bench_e2e_cmd(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from fgslam.bench.e2e import run_e2e, table_rows
-    from fgslam.cli.bench_output import print_tables
+    from fgslam.cli.bench_output import check_out, print_tables
     from fgslam.cli.cmd_run import load_config
     from fgslam.cli.cmd_sim import load_sim_config
     from fgslam.cli.progress import StreamProgress
@@ -44,8 +44,7 @@ def bench_e2e_cmd(
         raise typer.BadParameter(f"must be > 0, got {distance_m}", param_hint="--distance-m")
     if not stereo_rate_hz > 0:
         raise typer.BadParameter(f"must be > 0, got {stereo_rate_hz}", param_hint="--stereo-rate-hz")
-    if out.exists() and not out.is_dir():
-        raise typer.BadParameter(f"{out} exists and is not a directory", param_hint="--out")
+    check_out(out)  # a file, or not writable: refused before the simulation
     sim_cfg = load_sim_config(world, seed, distance_m, config)
     sensors = sim_cfg.sensors
     sim_cfg = dataclasses.replace(sim_cfg, sensors=dataclasses.replace(

@@ -3,7 +3,6 @@ traverse (real-time factor on one core, ATE without and with synthetic late fixe
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
@@ -29,6 +28,9 @@ def bench_ekf_cmd(
     from rich.table import Table
 
     from fgslam.bench.ekf import cost_curve, traverse_benchmark
+    from fgslam.cli.bench_output import check_out, write_results
+
+    check_out(out)
 
     try:
         from threadpoolctl import threadpool_limits
@@ -69,7 +71,4 @@ def bench_ekf_cmd(
             goal = nf["real_time_factor_cpu"] >= 50.0
             console.print(f"real-time goal (>= 50x on one core, CPU time of this process): {'met' if goal else 'NOT met'}; "
                           f"final landmarks {nf['n_landmarks_final']}, state dim {nf['state_dim_final']}")
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
-        console.print(f"wrote {out / 'results.json'}")
+    write_results(out, results, None, console, json_default=str)

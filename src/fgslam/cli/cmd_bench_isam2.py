@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
@@ -28,7 +27,10 @@ def bench_isam2_cmd(
     fixed-lag traverse (latency and memory against distance)."""
     from rich.console import Console
 
+    from fgslam.cli.bench_output import check_out, write_results
     from fgslam.smoother import SmootherConfig
+
+    check_out(out)
 
     if quick:
         duration_s, distance_m = min(duration_s, 200.0), min(distance_m, 100.0)
@@ -39,10 +41,7 @@ def bench_isam2_cmd(
         _traverse(console, results, source, world, seed, duration_s, cfg, ekf)
     if not skip_fixed_lag:
         _fixed_lag(console, results, seed, distance_m, lag_s)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
-        console.print(f"results written to {out / 'results.json'}")
+    write_results(out, results, None, console)
 
 
 def _traverse(console, results: dict, source: str, world: str, seed: int, duration_s: float, cfg, ekf: bool) -> None:

@@ -39,7 +39,9 @@ def bench_match_cmd(
 
     from rich.console import Console
 
-    from fgslam.cli.bench_output import print_tables, progress_ticks, write_results
+    from fgslam.cli.bench_output import check_out, print_tables, progress_ticks, write_results
+
+    check_out(out)
 
     from fgslam.bench.match import (
         MatchBenchConfig,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import typer
@@ -9,11 +10,12 @@ import typer
 from fgslam.cli.app import app
 
 
-def compare_and_write(inputs_list: list, out: Path, cfg, console, rrd: bool = True) -> list:
-    """Compare every input (progress bars), write all outputs, print the table; returns the comparisons."""
+def compare_and_write(inputs_list: list, od, cfg, console, rrd: bool = True) -> list:
+    """Compare every input (progress bars), write all outputs into the open
+    :class:`~fgslam.io.outdir.OutputDir` ``od`` and commit it, print the table; returns the comparisons."""
     from fgslam.cli.progress import stream_progress
     from fgslam.compare import compare_world
-    from fgslam.inputs import stream_size
+    from fgslam.inputs import check_stream, stream_size
     from fgslam.outputs import write_comparison
     from fgslam.report import markdown_table
 
@@ -21,13 +23,30 @@ def compare_and_write(inputs_list: list, out: Path, cfg, console, rrd: bool = Tr
     for inputs in inputs_list:
         console.print(f"[bold]{inputs.name}[/bold]: {stream_size(inputs)}, "
                       f"{len(inputs.catalog)} catalog rocks")
+        runner = check_stream(inputs, cfg.runner)
+        run_cfg = cfg if runner == cfg.runner else dataclasses.replace(cfg, runner=runner)
         with stream_progress(inputs, console) as progress:
-            comparisons.append(compare_world(inputs, cfg, on_progress=progress.update))
-    files = write_comparison(out, comparisons, cfg, rrd=rrd)
+            comparisons.append(compare_world(inputs, run_cfg, on_progress=progress.update))
+    write_comparison(od.staging, comparisons, cfg, rrd=rrd)
+    files = od.commit()
     print(markdown_table([wc.metrics for wc in comparisons]))
     for f in files:
         console.print(f"wrote {f}")
     return comparisons
+
+
+def with_backends(cfg, backends: str | None):
+    """``cfg`` with the --backends list (the reference back-end kept when listed, else the last)."""
+    if not backends:
+        return cfg
+    from fgslam.errors import InputFileError
+    from reloc.config import config_from_dict
+
+    names = [b.strip() for b in backends.split(",") if b.strip()]
+    if not names:
+        raise InputFileError(f"--backends lists no back-end: {backends!r}")
+    ref = cfg.reference_backend if cfg.reference_backend in names else names[-1]
+    return config_from_dict(type(cfg), {"backends": names, "reference_backend": ref}, base=cfg)
 
 
 @app.command("compare")
@@ -39,18 +58,14 @@ def compare_cmd(
     no_rrd: bool = typer.Option(False, "--no-rrd", help="Skip the rerun recording."),
 ) -> None:
     """Compare EKF and iSAM2 (each with and without the same relocalization fixes) on each DIR."""
-    import dataclasses
-
     from rich.console import Console
 
     from fgslam.cli.cmd_run import load_config
     from fgslam.inputs import load_sim_dir
+    from fgslam.io.outdir import OutputDir
 
     console = Console(stderr=True)
-    cfg = load_config(config)
-    if backends:
-        names = tuple(b.strip() for b in backends.split(",") if b.strip())
-        ref = cfg.reference_backend if cfg.reference_backend in names else names[-1]
-        cfg = dataclasses.replace(cfg, backends=names, reference_backend=ref)
-    inputs_list = [load_sim_dir(d) for d in directories]  # all inputs checked before any long work
-    compare_and_write(inputs_list, out, cfg, console, rrd=not no_rrd)
+    cfg = with_backends(load_config(config), backends)
+    with OutputDir(out, "compare") as od:  # checked, created and locked before any work
+        inputs_list = [load_sim_dir(d) for d in directories]  # all inputs checked before any long work
+        compare_and_write(inputs_list, od, cfg, console, rrd=not no_rrd)

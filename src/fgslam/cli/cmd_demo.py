@@ -24,6 +24,7 @@ def demo_cmd(
     from fgslam.cli.cmd_compare import compare_and_write
     from fgslam.cli.cmd_run import load_config
     from fgslam.inputs import from_sim_run
+    from fgslam.io.outdir import OutputDir
     from sim.config import SimConfig
     from sim.simulate import simulate
 
@@ -35,9 +36,10 @@ def demo_cmd(
         import dataclasses
 
         sim_cfg = dataclasses.replace(sim_cfg, traverse=dataclasses.replace(sim_cfg.traverse, distance_m=distance_m))
-    with console.status(f"simulating {world} (seed {seed})"):
-        run = simulate(sim_cfg)
-        inputs = from_sim_run(run, name=world)
-    console.print(f"simulated {world} in {time.perf_counter() - t0:.1f} s")
-    compare_and_write([inputs], out, cfg, console)
+    with OutputDir(out, "compare") as od:  # checked, created and locked before any work
+        with console.status(f"simulating {world} (seed {seed})"):
+            run = simulate(sim_cfg)
+            inputs = from_sim_run(run, name=world)
+        console.print(f"simulated {world} in {time.perf_counter() - t0:.1f} s")
+        compare_and_write([inputs], od, cfg, console)
     console.print(f"demo done in {time.perf_counter() - t0:.1f} s; open the recording with: rerun {out / 'compare.rrd'}")

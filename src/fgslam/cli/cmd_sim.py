@@ -9,28 +9,22 @@ import typer
 from fgslam.cli.app import app
 
 
-def load_sim_config(world: str, seed: int, distance_m: float | None, config: Path | None):
-    """The :class:`sim.SimConfig` from defaults, an optional YAML file, then the command-line options."""
+def load_sim_config(world: str | None, seed: int | None, distance_m: float | None, config: Path | None):
+    """The :class:`sim.SimConfig` from defaults, an optional YAML file (overrides or a saved
+    world.yaml), then the command-line options (world and seed: the option, else the file's)."""
     import dataclasses
 
-    import yaml
-
-    from fgslam.errors import InputFileError
+    from fgslam.config_file import read_yaml_mapping, sim_overrides
     from reloc.config import config_from_dict
+    from reloc.errors import ConfigError
     from sim.config import SimConfig
 
-    data: dict = {}
-    if config is not None:
-        if not config.is_file():
-            raise InputFileError(f"{config}: simulator config file not found")
-        try:
-            data = yaml.safe_load(config.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputFileError(f"{config}: not valid YAML: {exc}") from exc
-        if not isinstance(data, dict):
-            raise InputFileError(f"{config}: the simulator config must be a mapping")
-    cfg = config_from_dict(SimConfig, data)
-    cfg = dataclasses.replace(cfg, world=world, seed=seed)
+    data = sim_overrides(read_yaml_mapping(config, "simulator config")) if config is not None else {}
+    try:
+        cfg = config_from_dict(SimConfig, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{config}: {exc}") from None
+    cfg = dataclasses.replace(cfg, world=cfg.world if world is None else world, seed=cfg.seed if seed is None else seed)
     if distance_m is not None:
         cfg = dataclasses.replace(cfg, traverse=dataclasses.replace(cfg.traverse, distance_m=distance_m))
     return cfg
@@ -38,12 +32,12 @@ def load_sim_config(world: str, seed: int, distance_m: float | None, config: Pat
 
 @app.command("sim")
 def sim_cmd(
-    world: str = typer.Option("my2021", "--world", help="World preset (my2020, my2021, my2022, cnes) or a Gazebo model directory."),
-    seed: int = typer.Option(0, "--seed", help="Seed of every random process of the run."),
+    world: str | None = typer.Option(None, "--world", help="World preset (my2020, my2021, my2022, cnes) or a Gazebo model directory [default: the --config file's, else my2021]."),
+    seed: int | None = typer.Option(None, "--seed", help="Seed of every random process of the run [default: the --config file's, else 0]."),
     out: Path = typer.Option(..., "--out", help="Output directory (bag/, catalog.csv, rocks_true.csv, world.yaml, orbital.png)."),
     distance_m: float | None = typer.Option(None, "--distance-m", help="Traverse length in metres (default: the preset's)."),
     config: Path | None = typer.Option(None, "--config", help="YAML overrides of the simulator config (see docs/sim.md)."),
-    overwrite: bool = typer.Option(True, "--overwrite/--no-overwrite", help="Replace an existing bag in OUT."),
+    overwrite: bool = typer.Option(False, "--overwrite/--no-overwrite", help="Replace an earlier output in OUT (its bag, catalog and world files)."),
     detections: str = typer.Option(
         "statistical", "--detections",
         help="statistical (sensor models) | image (render + ONNX detectors, ~0.75 s per stereo frame).",
@@ -59,7 +53,7 @@ def sim_cmd(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from fgslam.io.sim_dir import write_sim_dir
+    from fgslam.io.sim_dir import sim_output_dir, write_sim_files
     from sim.simulate import simulate
 
     if detections not in ("statistical", "image"):
@@ -67,9 +61,10 @@ def sim_cmd(
     console = Console(stderr=True)
     t0 = time.perf_counter()
     cfg = load_sim_config(world, seed, distance_m, config)
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                  console=console, transient=True) as progress:
-        task = progress.add_task(f"simulating {world} (seed {seed})", total=2)
+    with sim_output_dir(out, overwrite) as od, \
+            Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                     console=console, transient=True) as progress:
+        task = progress.add_task(f"simulating {cfg.world} (seed {cfg.seed})", total=2)
         run = simulate(cfg)
         if detections == "image":
             from sim.image_detections import ImageDetectionConfig, with_image_detections
@@ -77,11 +72,12 @@ def sim_cmd(
             progress.update(task, description="rendering stereo/orbital images and detecting rocks")
             run = with_image_detections(run, ImageDetectionConfig(rate_hz=image_rate_hz))
         progress.update(task, advance=1, description="writing bag, catalog, world and orbital image")
-        summary = write_sim_dir(run, out, overwrite=overwrite)
+        summary = write_sim_files(run, od.staging)
+        od.commit()
         progress.update(task, advance=1)
     wall = time.perf_counter() - t0
     s = run.stats
-    table = Table(title=f"fgslam sim: {run.world.name}, seed {seed}")
+    table = Table(title=f"fgslam sim: {run.world.name}, seed {cfg.seed}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
     rows = [

@@ -252,8 +252,22 @@ class BagSource:
 
     def ground_truth(self) -> list[Measurement]:
         """The ground-truth measurements only (reads just that topic; [] when the bag has none)."""
-        roles = [r for r in self._roles if r.name == "ground_truth" and r.topic in self._topics]
-        return list(self._stream(roles, check=False)) if roles else []
+        return list(self._only(("ground_truth",)))
+
+    def first_of(self, cls: type) -> Measurement | None:
+        """The first measurement of type ``cls`` (reads only its topic, and stops there)."""
+        role = {"CmdVel": "cmd_vel", "WheelOdometry": "wheel_odom", "ImuSample": "imu",
+                "GroundTruthPose": "ground_truth"}.get(cls.__name__)
+        it = self._only((role,)) if role else (m for m in self if isinstance(m, cls))
+        return next(it, None)
+
+    def motion_only(self) -> Iterator[Measurement]:
+        """The commands, wheel odometry and IMU samples only (reads just those topics)."""
+        return self._only(("cmd_vel", "wheel_odom", "imu"))
+
+    def _only(self, names: tuple[str, ...]) -> Iterator[Measurement]:
+        roles = [r for r in self._roles if r.name in names and r.topic in self._topics]
+        return self._stream(roles, check=False) if roles else iter(())
 
     def span_s(self) -> tuple[float, float]:
         """(start, end) of the recording (s, log time: close to the stamps' span, known without reading)."""

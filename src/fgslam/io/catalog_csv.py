@@ -21,6 +21,8 @@ from reloc.measurements import RockCatalog
 log = logging.getLogger(__name__)
 
 HEADER: tuple[str, ...] = ("x", "y", "size", "score")
+MIN_CATALOG_ROCKS = 3  # the fewest rocks a catalog can be matched against (one triangle)
+DUPLICATE_TOL_M = 1e-3  # two rows closer than this describe one rock twice
 REQUIRED: tuple[str, ...] = ("x", "y", "size")
 
 
@@ -52,6 +54,7 @@ def read_catalog_csv(path: str | Path) -> RockCatalog:
     columns = [c for c in HEADER if c in header]
     index = {c: header.index(c) for c in columns}
     values: list[list[float]] = []
+    linenos: list[int] = []
     for lineno, row in enumerate(rows[1:], start=2):
         if not row or all(not cell.strip() for cell in row):
             continue  # blank lines (e.g. a trailing newline) carry no rock
@@ -76,9 +79,11 @@ def read_catalog_csv(path: str | Path) -> RockCatalog:
                 )
             parsed.append(v)
         values.append(parsed)
+        linenos.append(lineno)
     if not values:
         raise InputFileError(f"catalog {path}: no rocks after the header")
     arr = np.asarray(values, dtype=float)
+    _check_duplicates(path, arr[:, :2], linenos)
     score = arr[:, columns.index("score")] if "score" in columns else np.ones(len(arr))
     try:
         catalog = RockCatalog(xy_m=arr[:, [0, 1]], size_m=arr[:, 2], score=score)
@@ -86,6 +91,20 @@ def read_catalog_csv(path: str | Path) -> RockCatalog:
         raise InputFileError(f"catalog {path}: {exc}") from exc
     log.debug("read %d catalog rocks from %s", len(catalog), path)
     return catalog
+
+
+def _check_duplicates(path: Path, xy_m: np.ndarray, linenos: list[int]) -> None:
+    """Two rows at one position (within DUPLICATE_TOL_M) are one rock listed twice: a malformed
+    catalog (a concatenated or re-exported file), never two rocks."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xy_m).query_pairs(DUPLICATE_TOL_M, output_type="ndarray")
+    if len(pairs):
+        i, j = min(pairs.tolist())
+        n = len(np.unique(pairs[:, 1]))
+        raise InputFileError(
+            f"catalog {path}: line {linenos[j]}: rock at ({xy_m[j, 0]:g}, {xy_m[j, 1]:g}) repeats line {linenos[i]} "
+            f"({n} duplicate row(s) in all); remove the duplicates")
 
 
 def write_catalog_csv(path: str | Path, catalog: RockCatalog) -> None:

@@ -13,6 +13,7 @@ from fgslam.errors import SmootherError
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
 from reloc.calibration import CalibrationConfig
+from reloc.config import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 
 
 class Factorization(str, Enum):
@@ -25,15 +26,17 @@ class Factorization(str, Enum):
 
 
 @dataclass(frozen=True)
+@checked(SmootherError)
 class KeyframeConfig:
     """When to start a new keyframe: whichever of distance, heading change or time comes first."""
 
-    distance_m: float = 0.5
-    yaw_rad: float = 0.2
-    interval_s: float = 1.0
+    distance_m: Positive = 0.5
+    yaw_rad: Positive = 0.2
+    interval_s: Positive = 1.0
 
 
 @dataclass(frozen=True)
+@checked(SmootherError)
 class OdometryNoiseConfig:
     """Per-step odometry noise (command speed held over an IMU step, IMU orientation increment).
 
@@ -47,29 +50,30 @@ class OdometryNoiseConfig:
     # wheel-soil bias), which a white model can only cover by a larger sigma: with 0.04 / 0.02
     # iSAM2 + reloc on my2022 was inside 3 sigma 55 % of the time (ATE 0.096 m), with 0.08 / 0.04
     # 100 % (0.041 m)
-    sigma_forward_m_per_sqrtm: float = 0.08
-    sigma_lateral_m_per_sqrtm: float = 0.04  # lateral/vertical
+    sigma_forward_m_per_sqrtm: Positive = 0.08
+    sigma_lateral_m_per_sqrtm: Positive = 0.04  # lateral/vertical
     # slip grows with the slope (wheels on loose soil uphill): forward sigma per sqrt(m) grows by
     # this per rad of pitch (IMU gravity reference), added in quadrature. cnes seed 3 climbs
     # 1.5 m in 60 s: a 0.6 m slip burst over 3 m left iSAM2 + reloc 0.6 m off its own map
-    sigma_forward_m_per_sqrtm_per_rad: float = 1.5
-    sigma_rot_radpsqrts: float = 0.002  # orientation increment, rad per sqrt(s)
-    floor_sigma_m: float = 1e-4  # per step
-    floor_sigma_rad: float = 1e-5  # per step
-    gravity_sigma_rad: float = 0.01  # roll/pitch from the IMU's gravity reference
+    sigma_forward_m_per_sqrtm_per_rad: NonNegative = 1.5
+    sigma_rot_radpsqrts: Positive = 0.002  # orientation increment, rad per sqrt(s)
+    floor_sigma_m: Positive = 1e-4  # per step
+    floor_sigma_rad: Positive = 1e-5  # per step
+    gravity_sigma_rad: Positive = 0.01  # roll/pitch from the IMU's gravity reference
 
 
 @dataclass(frozen=True)
+@checked(SmootherError)
 class LandmarkConfig:
     """Rock landmarks: association, insertion and the robust point factor."""
 
     association: AssociationConfig = field(default_factory=AssociationConfig)
-    min_obs_to_insert: int = 2  # observations (on distinct keyframes) before a rock enters the graph
-    candidate_timeout_s: float = 10.0  # a candidate not confirmed within this is dropped
-    huber_k: float = 3.0  # on the whitened 3-dof residual
-    rock_cov_scale: float = 1.0  # the detector's reported rock covariance is multiplied by this
-    min_range_m: float = 0.3
-    min_frame_interval_s: float = 0.95  # rock frames closer than this to the last used one are skipped
+    min_obs_to_insert: PositiveInt = 2  # observations (on distinct keyframes) before a rock enters the graph
+    candidate_timeout_s: Positive = 10.0  # a candidate not confirmed within this is dropped
+    huber_k: Positive = 3.0  # on the whitened 3-dof residual
+    rock_cov_scale: Positive = 1.0  # the detector's reported rock covariance is multiplied by this
+    min_range_m: NonNegative = 0.3
+    min_frame_interval_s: NonNegative = 0.95  # rock frames closer than this to the last used one are skipped
     # (only one observation per landmark and keyframe enters the graph, so more frames add little:
     # 2 Hz -> 1 Hz halved the association cost and lowered the ATE, 0.028 -> 0.021 m on the simulator)
     # per rock frame: at most max_observations factors of graph landmarks (lowest innovation
@@ -78,36 +82,35 @@ class LandmarkConfig:
     # entering the graph (best constrained first, the others wait); see docs/smoother.md
     budget: ObservationBudget = field(
         default_factory=lambda: ObservationBudget(max_observations=25, max_new=3))
-    dense_view: int = 60
-    max_retired: int = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
+    dense_view: NonNegativeInt = 60
+    max_retired: NonNegativeInt = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
 
-    def __post_init__(self) -> None:
-        if not self.rock_cov_scale > 0:
-            raise SmootherError(f"landmarks.rock_cov_scale must be > 0, got {self.rock_cov_scale}")
 
 
 @dataclass(frozen=True)
+@checked(SmootherError)
 class FixConfig:
     """Late global (x, y, yaw) fixes: gate, robust kernel, retraction, history."""
 
-    gate_chi2: float = 30.0  # Mahalanobis gate on the innovation (3 dof)
-    gate_distance_m: float = 25.0  # hard gate on the position innovation
-    cauchy_k: float = 2.0  # Cauchy kernel scale on the whitened residual
-    retract_chi2: float = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)
-    max_age_s: float = 60.0  # odometry history kept to place late fixes
-    extra_iterations: int = 1  # extra iSAM2 updates after a fix (one Gauss-Newton step each)
-    window_margin_s: float = 2.0  # fixed-lag: refuse fixes this close to the window edge
+    gate_chi2: Positive = 30.0  # Mahalanobis gate on the innovation (3 dof)
+    gate_distance_m: Positive = 25.0  # hard gate on the position innovation
+    cauchy_k: Positive = 2.0  # Cauchy kernel scale on the whitened residual
+    retract_chi2: Positive = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)
+    max_age_s: Positive = 60.0  # odometry history kept to place late fixes
+    extra_iterations: NonNegativeInt = 1  # extra iSAM2 updates after a fix (one Gauss-Newton step each)
+    window_margin_s: NonNegative = 2.0  # fixed-lag: refuse fixes this close to the window edge
     # With a calibration variable (SmootherConfig.calibration), a fix's yaw sigma is taken as at
     # least this: a fix's heading comes from the map, whose rotation follows the calibration's yaw,
     # so the two would feed each other (realistic errors, my2020: yaw calibration -0.55 deg against
     # the drawn -0.05, ATE 0.148 m, inside 3 sigma 24 %; with 0.05: -0.047 deg, 0.031 m, 100 %)
-    calibrated_yaw_sigma_floor_rad: float = 0.05
+    calibrated_yaw_sigma_floor_rad: NonNegative = 0.05
     gate_smoothed_marginal: bool = False  # gate with the keyframe's smoothed marginal (5-40 ms for a
     # keyframe 30 s old, the path to the Bayes tree root) instead of its causal covariance (an
     # upper bound: the gate is slightly looser, retraction still catches what passes)
 
 
 @dataclass(frozen=True)
+@checked(SmootherError)
 class SmootherConfig:
     """All settings of :class:`fgslam.smoother.Isam2Smoother`.
 
@@ -120,15 +123,15 @@ class SmootherConfig:
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
     fixes: FixConfig = field(default_factory=FixConfig)
     factorization: Factorization = Factorization.CHOLESKY
-    relinearize_threshold: float = 0.01  # keyframe poses: relinearize when |delta| (rad, m) exceeds this
-    landmark_relinearize_scale: float = 5.0  # rock landmarks relinearize at this times the pose
+    relinearize_threshold: NonNegative = 0.01  # keyframe poses: relinearize when |delta| (rad, m) exceeds this
+    landmark_relinearize_scale: Positive = 5.0  # rock landmarks relinearize at this times the pose
     # threshold (m): each relinearized landmark re-eliminates every clique it is in, and ~500 of
     # them moving by a few mm dominated the update cost (x1.4 real time on the 1000 s simulator
     # traverse, same ATE; 20 raised the ATE by 40 %). Full mode only (fixed-lag: 1)
-    relinearize_skip: int = 10  # relinearization check every 10 updates (halved p99 on the simulator)
+    relinearize_skip: PositiveInt = 10  # relinearization check every 10 updates (halved p99 on the simulator)
     partial_relinearization_check: bool = True  # iSAM2 checks for relinearization only from the
     # root down while deltas exceed the threshold (x1.3 real time on the simulator, ATE +2 %)
-    fixed_lag_s: float = 0.0
+    fixed_lag_s: NonNegative = 0.0
     frozen_marginals: bool = False  # fixed-lag: marginal covariance of a keyframe as it leaves the
     # window (~1 ms each) instead of its causal covariance (an upper bound)
     snapshot_before_fixes: bool = True  # full mode: copy ISAM2 (~ms) before fix updates and retractions

@@ -1,0 +1,100 @@
+"""Worker processes that die with their parent, however the parent ends (SIGINT, SIGTERM, SIGKILL).
+
+A forked worker blocked on its queue outlives a killed parent: orphaned, holding its memory
+(the whole inherited traverse) for ever. :func:`die_with_parent`, called first thing in the
+worker, asks the kernel to kill it when the parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``; the
+signal comes when the *thread* that forked it ends, which for a process pool is the thread that
+runs the pool, alive until the pool is shut down), or, where that is not available, starts a
+thread that watches the parent's pid. :func:`terminate_on_sigterm` turns SIGTERM into an
+exception in the main process, so that its cleanup (stopping workers, removing a half-written
+output) runs as it does for Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+log = logging.getLogger(__name__)
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+WATCH_PERIOD_S = 0.5
+
+
+class Terminated(BaseException):
+    """SIGTERM reached the process (a BaseException, like KeyboardInterrupt: nothing swallows it)."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__(f"terminated by signal {signum}")
+        self.signum = signum
+
+
+def _pdeathsig() -> bool:
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch(parent_pid: int) -> None:
+    while True:
+        if os.getppid() != parent_pid:
+            os._exit(1)
+        time.sleep(WATCH_PERIOD_S)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Make this (child) process die as soon as ``parent_pid``, its parent, does."""
+    armed = _pdeathsig()
+    if os.getppid() != parent_pid:  # the parent died before the request took effect
+        os._exit(1)
+    if not armed:
+        threading.Thread(target=_watch, args=(parent_pid,), name="parent-watch", daemon=True).start()
+
+
+def worker_initializer(parent_pid: int) -> None:
+    """Process-pool initializer: die with the parent; leave Ctrl-C to it (the terminal sends SIGINT
+    to the whole group; the parent then stops its workers itself, without a traceback from each)."""
+    die_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def kill_pool(pool) -> None:
+    """Stop a ``ProcessPoolExecutor`` now: its workers are killed, pending work cancelled (the
+    pool's own shutdown would wait for every running task to finish)."""
+    procs = getattr(pool, "_processes", None)  # private, but the only handle on the workers
+    procs = list(procs.values()) if isinstance(procs, dict) else []
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(timeout=5.0)
+
+
+@contextlib.contextmanager
+def terminate_on_sigterm() -> Iterator[None]:
+    """Within the block (main thread only), SIGTERM raises :class:`Terminated`."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated(signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
