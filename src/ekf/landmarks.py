@@ -17,12 +17,12 @@ from ekf.updates import block_diag3, joseph_update
 from reloc.association import associate
 from reloc.backend import LandmarkUpdateReport
 from reloc.budget import innovation_trace, select_observations
+from reloc.geometry import skew
 from reloc.landmark_model import (
     init_jacobians,
     point_in_base,
     point_jacobians,
     point_to_world,
-    skew,
 )
 from reloc.measurements import RockObservations
 

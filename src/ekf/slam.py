@@ -19,7 +19,6 @@ from ekf.errors import EkfInputError
 from ekf.history import Entry, History
 from ekf.landmarks import LandmarkUpdater
 from ekf.motion import propagate, split_step
-from ekf.so3 import log_so3, project_so3
 from ekf.state import CALIB_DIM, POSE_DIM, FilterState
 from ekf.updates import attitude_model, fix_model, fix_residual, joseph_update
 from reloc.backend import (
@@ -31,6 +30,7 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.calibration import calibration_report
+from reloc.geometry import log_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep

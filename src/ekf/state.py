@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ekf.so3 import exp_so3, project_so3
+from reloc.geometry import exp_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 
 POSE_DIM = 6

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fgslam.errors import FgslamError
-from fgslam.metrics import wrap_angle
 from reloc.backend import LandmarkMap, PoseEstimate
+from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix, RockCatalog
 
 log = logging.getLogger(__name__)
@@ -182,7 +182,7 @@ def fix_from_similarity(
     t = np.asarray(translation, float).reshape(2)
     xy_est = est.position_m[:2]
     xy = scale * R @ xy_est + t
-    yaw = float(np.arctan2(np.sin(est.yaw_rad + rotation_rad), np.cos(est.yaw_rad + rotation_rad)))
+    yaw = float(wrap_angle(est.yaw_rad + rotation_rad))
     dof_corr = n / max(n - 4, 1)  # 4 fitted parameters (similarity) shrink the residuals
     sigma2 = max(rmse_m**2 * dof_corr + cfg.map_cov_weight * map_var_m2, cfg.sigma_floor_m**2)
     sigma2 *= cfg.inflation**2

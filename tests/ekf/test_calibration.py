@@ -11,7 +11,7 @@ from ekf_synth import simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
-from ekf.so3 import exp_so3
+from reloc.geometry import exp_so3
 from reloc.backend import PoseEstimate
 from reloc.calibration import CalibrationConfig
 from reloc.errors import ConfigError

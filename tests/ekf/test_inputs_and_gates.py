@@ -11,7 +11,7 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig, FixGateConfig
 from ekf.errors import EkfInputError
 from ekf.slam import EkfSlam
-from ekf.so3 import yaw_of
+from reloc.geometry import yaw_of
 from reloc.backend import Backend, PoseEstimate
 from reloc.errors import MeasurementError
 from reloc.measurements import GlobalFix, RockObservations

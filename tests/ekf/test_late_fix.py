@@ -11,7 +11,7 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig
 from ekf.motion import split_step
 from ekf.slam import EkfSlam
-from ekf.so3 import yaw_of
+from reloc.geometry import yaw_of
 from reloc.backend import PoseEstimate
 from reloc.measurements import GlobalFix
 

@@ -22,6 +22,7 @@ from reloc.backend import (
     PoseEstimate,
     Trajectory,
 )
+from reloc.geometry import skew
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep
 
@@ -37,10 +38,6 @@ class DeadReckoningConfig:
     association_gate_m: float = 0.6  # nearest landmark within this distance is the same rock
     use_fixes: bool = False
     build_map: bool = True  # False: ignore rock frames (the odometry-only curve needs no map)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 class DeadReckoning:
@@ -70,7 +67,7 @@ class DeadReckoning:
         ds = step.v_mps * step.dt
         dp = 0.5 * (R0 + R1) @ np.array([ds, 0.0, 0.0])
         F = np.eye(6)
-        F[:3, 3:] = -_skew(dp)
+        F[:3, 3:] = -skew(dp)
         Q_body = np.diag([(c.sigma_speed_frac * ds) ** 2, (c.sigma_lateral_frac * abs(ds)) ** 2, (c.sigma_z_frac * abs(ds)) ** 2])
         Q = np.zeros((6, 6))
         Q[:3, :3] = R1 @ Q_body @ R1.T

@@ -16,9 +16,9 @@ import numpy as np
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
-from ekf.so3 import exp_so3, yaw_of
 from reloc.association import AssociationConfig
 from reloc.backend import PoseEstimate
+from reloc.geometry import exp_so3, yaw_of
 from reloc.landmark_book import LandmarkBookConfig
 from reloc.measurements import CmdVel, GlobalFix, ImuSample, RockObservations, WheelOdometry
 from reloc.odometry import OdometryAssembler, OdometryStep

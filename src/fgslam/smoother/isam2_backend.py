@@ -27,7 +27,6 @@ from fgslam.smoother.factors import (
     inverse,
     make_calibrated_point_factor,
     make_point_factor,
-    skew,
 )
 from fgslam.smoother.fixes import FixRecord, innovation_d2, place_fix, residual_d2_many
 from fgslam.smoother.keyframes import KeyframeStore, keyframe_due
@@ -43,6 +42,7 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.calibration import calibration_report
+from reloc.geometry import skew
 from reloc.measurements import GlobalFix, RockObservations
 from reloc.odometry import OdometryStep
 
@@ -134,7 +134,7 @@ class Isam2Smoother:
         # the observation moved onto the keyframe through the odometry since it
         z_kf = z @ R_rel.T + T_rel[:3, 3]
         J = np.zeros((n, 3, 6))
-        J[:, :, :3] = -R_rel @ _skew_rows(z)
+        J[:, :, :3] = -R_rel @ skew(z)
         J[:, :, 3:] = R_rel
         R_kf = R_rel @ Rz @ R_rel.T + J @ C_rel @ np.swapaxes(J, 1, 2)
         fa = self.landmarks.associate_frame(
@@ -432,6 +432,3 @@ class Isam2Smoother:
                 if r.active:
                     r.factor_index = m.get(r.factor_index, r.factor_index)
 
-
-def _skew_rows(v: np.ndarray) -> np.ndarray:
-    return np.array([skew(row) for row in v]).reshape(-1, 3, 3)
