@@ -11,10 +11,10 @@ from ekf_synth import simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
-from reloc.geometry import exp_so3
 from reloc.backend import PoseEstimate
 from reloc.calibration import CalibrationConfig
 from reloc.errors import ConfigError
+from reloc.geometry import exp_so3
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))
 ROT = np.radians([0.0, 0.0, 1.5])  # a mounting error about base_link z

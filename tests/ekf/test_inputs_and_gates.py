@@ -11,9 +11,9 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig, FixGateConfig
 from ekf.errors import EkfInputError
 from ekf.slam import EkfSlam
-from reloc.geometry import yaw_of
 from reloc.backend import Backend, PoseEstimate
 from reloc.errors import MeasurementError
+from reloc.geometry import yaw_of
 from reloc.measurements import GlobalFix, RockObservations
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))

@@ -11,8 +11,8 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig
 from ekf.motion import split_step
 from ekf.slam import EkfSlam
-from reloc.geometry import yaw_of
 from reloc.backend import PoseEstimate
+from reloc.geometry import yaw_of
 from reloc.measurements import GlobalFix
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))

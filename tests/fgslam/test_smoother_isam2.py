@@ -280,9 +280,9 @@ def test_rock_cov_scale_equals_feeding_scaled_covariances():
 def test_calibration_variable_recovers_a_yaw_and_scale_error():
     import dataclasses
 
-    from reloc.geometry import exp_so3
     from fgslam.errors import SmootherError
     from reloc.calibration import CalibrationConfig
+    from reloc.geometry import exp_so3
     from reloc.measurements import RockObservations
 
     run = simulate_synthetic(SyntheticConfig(seed=4, duration_s=90.0))

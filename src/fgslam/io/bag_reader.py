@@ -2,8 +2,10 @@
 
 The same path serves simulated bags (``sim.bag_writer``) and real recordings: any rosbag2
 directory (MCAP or SQLite3 storage, with ``metadata.yaml``) or a bare ``.mcap`` / ``.db3`` file
-holding the topics of :class:`~sim.rosmsgs.TopicNames`. Bags embed their message definitions;
-for bags that do not, the Jazzy typestore with vision_msgs is the fallback.
+holding the topics of :class:`~reloc.bag_spec.TopicNames`. Motion inputs and ground truth have
+fixed roles; every registered landmark kind with a bag layer (:mod:`reloc.kinds`) is one more
+role, decoded by its codec. Bags embed their message definitions; for bags that do not, the
+Jazzy typestore with vision_msgs is the fallback.
 
 Measurement time is the header stamp (integer ns -> float s), not the recording time; only an
 unstamped ``geometry_msgs/Twist`` on the command topic falls back to the log time. Stamps are
@@ -17,8 +19,8 @@ Every such repair is counted in :class:`BagReport` and logged at WARNING. With
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,84 +28,41 @@ import numpy as np
 from fgslam.errors import BagError
 from fgslam.io.bag_decode import (
     BagReaderConfig,
-    DecodeError,
-    RockDecoder,
-    UnknownFrameError,
     decode_cmd_vel,
     decode_ground_truth,
     decode_imu,
     decode_wheel_odom,
     has_nonfinite,
     header_ns,
-    same_measurement,
 )
-from reloc.errors import MeasurementError
-from reloc.measurements import Measurement, sort_key
-from sim.rosmsgs import (
+from fgslam.io.bag_report import (
+    BagReport,
+    BagStream,
+    TopicReport,
+    check_kept,
+    log_repairs,
+    repair_stamps,
+)
+from reloc.bag_spec import (
     CMD_VEL_TYPE,
     CMD_VEL_UNSTAMPED_TYPE,
     IMU_TYPE,
     ODOMETRY_TYPE,
-    ROCKS_TYPE,
+    BagCodecError,
+    DecodeContext,
+    MessageContentError,
     TopicNames,
+    UnknownFrameError,
+    check_transform,
     typestore,
 )
+from reloc.errors import MeasurementError
+from reloc.kinds import UnknownKindError, kind_named, kinds_with
+from reloc.measurements import Measurement, sort_key
 
 log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True)
-class TopicReport:
-    """Per-topic counts: messages in the bag, measurements kept, and each kind of repair."""
-
-    topic: str
-    role: str
-    msgtype: str
-    n_messages: int = 0
-    n_kept: int = 0
-    n_reordered: int = 0  # stamp older than an earlier message on the topic (sorted)
-    n_duplicates: int = 0  # same stamp and content as a kept message (dropped)
-    n_conflicts: int = 0  # same stamp, different content (dropped; the first recorded is kept)
-    n_nonfinite: int = 0  # NaN/inf in the message (dropped)
-    n_invalid: int = 0  # other content that is no valid measurement (dropped)
-    n_log_stamped: int = 0  # unstamped messages timed by the bag's log time
-    first_problem: str = ""  # the first invalid message's problem, for the log
-
-    @property
-    def n_repairs(self) -> int:
-        return (
-            self.n_reordered
-            + self.n_duplicates
-            + self.n_conflicts
-            + self.n_nonfinite
-            + self.n_invalid
-        )
-
-
-@dataclass(frozen=True)
-class BagReport:
-    """What :func:`read_bag` found: ``topics`` maps topic name -> :class:`TopicReport`;
-    ``repairs`` holds one human-readable line per repair kind applied."""
-
-    path: Path
-    topics: dict[str, TopicReport] = field(default_factory=dict)
-    repairs: tuple[str, ...] = ()
-
-    @property
-    def n_repairs(self) -> int:
-        return sum(r.n_repairs for r in self.topics.values())
-
-
-@dataclass(frozen=True)
-class BagStream:
-    """A bag as measurements sorted by :func:`reloc.measurements.sort_key`, plus the read report."""
-
-    measurements: list[Measurement]
-    report: BagReport
-
-    def of_type(self, cls: type) -> list:
-        """The measurements of one type, in stream order."""
-        return [m for m in self.measurements if type(m) is cls]
+__all__ = ["BagReport", "BagStream", "TopicReport", "read_bag"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +71,7 @@ class _Role:
     topic: str
     msgtypes: tuple[str, ...]
     decode: Callable
+    landmark: bool = False  # the topic of a landmark kind
 
 
 def _resolve(path: Path) -> Path:
@@ -168,7 +128,10 @@ def _check_topics(reader, roles: list[_Role], path: Path) -> dict[str, object]:
         ", ".join(f"{t} ({i.msgtype}, {i.msgcount})" for t, i in sorted(info.items())) or "none"
     )
     by_name = {r.name: r for r in roles}
-    missing = [by_name[n].topic for n in ("imu", "rocks") if not present[n]]
+    missing = [by_name["imu"].topic] if not present["imu"] else []
+    landmarks = [r for r in roles if r.landmark]
+    if not any(present[r.name] for r in landmarks):  # at least one landmark kind
+        missing.append(" or ".join(r.topic for r in landmarks) or "a landmark topic (no kind selected)")
     if not (present["cmd_vel"] or present["wheel_odom"]):
         missing.append(f"{by_name['cmd_vel'].topic} or {by_name['wheel_odom'].topic}")
     if missing:
@@ -190,6 +153,37 @@ def _check_topics(reader, roles: list[_Role], path: Path) -> dict[str, object]:
     return selected
 
 
+def _frames(config: BagReaderConfig, camera_frames: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    """``T_base_frame`` of every named frame (the base frame is the identity), validated."""
+    out = {config.base_frame: np.eye(4)}
+    for name, T in (camera_frames or {}).items():
+        try:
+            out[name] = check_transform(name, T, config.base_frame)
+        except BagCodecError as exc:
+            raise BagError(str(exc)) from None
+    return out
+
+
+def _landmark_roles(topics: TopicNames, kinds: Sequence[str] | None, ctx: DecodeContext) -> list[_Role]:
+    """One role per landmark kind read: every registered kind with a bag layer, or ``kinds``."""
+    try:
+        unknown = [k for k in topics.kinds if k not in {kd.name for kd in kinds_with("bag")}]
+        if unknown:
+            kind_named(unknown[0])  # raises for an unregistered name
+            raise BagError(f"TopicNames.kinds names kind {unknown[0]!r}, which has no bag layer")
+        chosen = kinds_with("bag") if kinds is None else [kind_named(k) for k in kinds]
+    except UnknownKindError as exc:
+        raise BagError(f"cannot read landmark kinds: {exc}") from None
+    roles = []
+    for kind in chosen:
+        if not kind.has("bag"):
+            raise BagError(f"landmark kind {kind.name!r} has no bag layer: it cannot be read from a bag")
+        codec = kind.layer("bag")
+        roles.append(_Role(kind.name, topics.topic_of(kind.name, codec), tuple(codec.msgtypes),
+                           codec.decoder(ctx), landmark=True))
+    return roles
+
+
 def read_bag(
     path: str | Path,
     topics: TopicNames | None = None,
@@ -197,24 +191,26 @@ def read_bag(
     camera_frames: dict[str, np.ndarray] | None = None,
     repair: bool = True,
     config: BagReaderConfig | None = None,
+    kinds: Sequence[str] | None = None,
 ) -> BagStream:
     """Read the bag at ``path`` (rosbag2 directory or .mcap/.db3 file) into a :class:`BagStream`.
 
-    ``camera_frames`` maps a detection frame id to ``T_base_cam`` (4, 4), so rocks reported in a
-    camera frame are rotated and translated into base_link. Raises :class:`BagError` naming the
-    bag, the topic and the problem on unreadable bags, missing required topics (imu, rocks, and
-    cmd_vel or wheel_odom), wrong message types, unknown frames, and (``repair=False``) on any
-    stamp or content problem that would otherwise be repaired.
+    ``camera_frames`` maps a detection frame id to ``T_base_cam`` (4, 4), so landmarks reported
+    in a camera frame are rotated and translated into base_link. ``kinds`` names the landmark
+    kinds to read (default: every registered kind with a bag layer). Raises :class:`BagError`
+    naming the bag, the topic and the problem on unreadable bags, missing required topics (imu,
+    cmd_vel or wheel_odom, and a landmark topic), wrong message types, unknown frames, unknown
+    kinds, and (``repair=False``) on any stamp or content problem that would otherwise be repaired.
     """
     path = Path(path)
     topics = topics or TopicNames()
     config = config or BagReaderConfig()
-    rocks = RockDecoder(config, camera_frames)  # validates the extrinsics before any I/O
+    ctx = DecodeContext(config, _frames(config, camera_frames))  # extrinsics checked before any I/O
     roles = [
         _Role("cmd_vel", topics.cmd_vel, (CMD_VEL_TYPE, CMD_VEL_UNSTAMPED_TYPE), decode_cmd_vel),
         _Role("wheel_odom", topics.wheel_odom, (ODOMETRY_TYPE,), decode_wheel_odom),
         _Role("imu", topics.imu, (IMU_TYPE,), decode_imu),
-        _Role("rocks", topics.rocks, (ROCKS_TYPE,), rocks),
+        *_landmark_roles(topics, kinds, ctx),
         _Role("ground_truth", topics.ground_truth, (ODOMETRY_TYPE,), decode_ground_truth),
     ]
     reader = _open(_resolve(path), path)
@@ -231,12 +227,12 @@ def read_bag(
         if role.topic not in per_topic:
             continue
         entries, counts = per_topic[role.topic]
-        kept, counts = _repair_stamps(entries, counts, role.topic, path, repair)
+        kept, counts = repair_stamps(entries, counts, role.topic, path, repair)
         measurements.extend(kept)
         report = TopicReport(topic=role.topic, role=role.name, n_kept=len(kept), **counts)
         reports[role.topic] = report
-        repairs.extend(_log_repairs(report, path))
-    _check_kept(reports, path)
+        repairs.extend(log_repairs(report, path))
+    check_kept(reports, {r.name for r in roles if r.landmark}, path)
     measurements.sort(key=sort_key)
     log.info(
         "read bag %s: %d measurements, %s",
@@ -289,7 +285,7 @@ def _decode_all(reader, selected, roles: list[_Role], path: Path, repair: bool):
                 m = role_of[topic].decode(msg, ns)
             except UnknownFrameError as exc:
                 raise BagError(f"bag {path}: topic {topic}: {exc}") from None
-            except (MeasurementError, DecodeError) as exc:
+            except (MeasurementError, MessageContentError) as exc:
                 kind = "n_nonfinite" if has_nonfinite(msg) else "n_invalid"
                 if not repair:
                     raise BagError(
@@ -309,83 +305,3 @@ def _decode_all(reader, selected, roles: list[_Role], path: Path, repair: bool):
             f"{type(exc).__name__}: {exc}"
         ) from exc
     return out
-
-
-def _repair_stamps(entries: list, counts: dict, topic: str, path: Path, repair: bool):
-    """Sort one topic by stamp and drop same-stamp repeats; return (measurements, counts)."""
-    n_reordered = 0
-    latest = None
-    for ns, _, _ in entries:
-        if latest is not None and ns < latest:
-            n_reordered += 1
-        latest = ns if latest is None else max(latest, ns)
-    if n_reordered and not repair:
-        raise BagError(
-            f"bag {path}: topic {topic}: {n_reordered} message(s) stamped earlier than "
-            "a message recorded before them (out of order)"
-        )
-    entries = sorted(entries, key=lambda e: (e[0], e[1]))
-    kept: list[Measurement] = []
-    n_dup = n_conflict = 0
-    group_ns, group = None, []
-    for ns, _, m in entries:
-        if ns != group_ns:
-            group_ns, group = ns, []
-        if not group:
-            group.append(m)
-            kept.append(m)
-        elif any(same_measurement(m, k) for k in group):
-            n_dup += 1
-        else:
-            n_conflict += 1
-    if (n_dup or n_conflict) and not repair:
-        raise BagError(
-            f"bag {path}: topic {topic}: {n_dup} duplicate and {n_conflict} conflicting "
-            "message(s) share a stamp with an earlier one"
-        )
-    return kept, dict(counts, n_reordered=n_reordered, n_duplicates=n_dup, n_conflicts=n_conflict)
-
-
-_REPAIR_TEXT = {
-    "n_reordered": "sorted %d message(s) recorded out of stamp order",
-    "n_duplicates": "dropped %d exact duplicate message(s)",
-    "n_conflicts": "dropped %d message(s) sharing a stamp with different content "
-    "(kept the first recorded)",
-    "n_nonfinite": "dropped %d message(s) holding NaN/inf",
-    "n_invalid": "dropped %d invalid message(s)",
-}
-
-
-def _check_kept(reports: dict[str, TopicReport], path: Path) -> None:
-    """A required input whose every message was dropped is an error, not an empty stream."""
-    by_role = {r.role: r for r in reports.values()}
-    motion = [by_role[k] for k in ("cmd_vel", "wheel_odom") if k in by_role]
-    needed = [by_role["imu"], by_role["rocks"]]
-    if not any(r.n_kept for r in motion):
-        needed += motion
-    for r in needed:
-        if r.n_kept == 0:
-            raise BagError(
-                f"bag {path}: topic {r.topic}: none of its {r.n_messages} message(s) is usable"
-                + (f" (first problem: {r.first_problem})" if r.first_problem else "")
-            )
-
-
-def _log_repairs(report: TopicReport, path: Path) -> list[str]:
-    lines = []
-    for name, text in _REPAIR_TEXT.items():
-        n = getattr(report, name)
-        if n:
-            line = f"{report.topic}: " + text % n
-            if name in ("n_invalid", "n_nonfinite") and report.first_problem:
-                line += f" (first: {report.first_problem})"
-            log.warning("bag %s: %s", path, line)
-            lines.append(line)
-    if report.n_log_stamped:
-        log.info(
-            "bag %s: %s: %d unstamped message(s) timed by the log time",
-            path,
-            report.topic,
-            report.n_log_stamped,
-        )
-    return lines
