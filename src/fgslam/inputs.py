@@ -1,6 +1,6 @@
-"""What a run or a comparison consumes: a measurement stream, the orbital catalog, the start pose,
-optional ground truth and an optional orbital image, from a ``fgslam sim`` directory, from any bag
-plus a catalog CSV, or straight from the simulator."""
+"""What a run or a comparison consumes: a measurement stream, the orbital catalogs (one per
+landmark kind), the start pose, optional ground truth and an optional orbital image, from a
+``fgslam sim`` directory, from any bag plus catalog files, or straight from the simulator."""
 
 from __future__ import annotations
 
@@ -13,25 +13,40 @@ from scipy.spatial.transform import Rotation
 
 from fgslam.errors import InputFileError
 from reloc.backend import PoseEstimate, Trajectory, known_start_cov
-from reloc.measurements import GroundTruthPose, RockCatalog
+from reloc.errors import RelocError
+from reloc.kinds import UnknownKindError, kind_named, kinds_with
+from reloc.measurements import GroundTruthPose
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class RunInputs:
-    """One traverse: ``measurements`` (time-ordered), ``catalog``, ``initial`` pose, optional
+    """One traverse: ``measurements`` (time-ordered), ``catalogs`` (landmark kind name -> its
+    orbital catalog, e.g. ``{"rocks": RockCatalog}``), ``initial`` pose, optional
     ``orbital_image`` (H, W, 3) uint8 with ``orbital_extent`` (xmin, xmax, ymin, ymax) metres in world
     (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), and ``source`` (what it was read from)."""
 
     name: str
     measurements: list
-    catalog: RockCatalog
+    catalogs: dict
     initial: PoseEstimate
     orbital_image: np.ndarray | None = None
     orbital_extent: tuple[float, float, float, float] | None = None
     rocks_true_xy: np.ndarray | None = None
     source: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        try:
+            for name in self.catalogs:
+                kind_named(name)
+        except UnknownKindError as exc:
+            raise InputFileError(f"{self.name}: a catalog of an unknown landmark kind: {exc}") from None
+
+    @property
+    def catalog(self):
+        """The rock catalog (``catalogs["rocks"]``; None without one)."""
+        return self.catalogs.get("rocks")
 
 
 def start_pose_from_truth(gt: GroundTruthPose) -> PoseEstimate:
@@ -69,7 +84,7 @@ def from_sim_run(run, name: str | None = None, orbital_gsd_m: float = 0.1) -> Ru
     return RunInputs(
         name=name or str(getattr(run.config, "world", "sim")),
         measurements=list(run.measurements),
-        catalog=run.catalog,
+        catalogs={"rocks": run.catalog},
         initial=run.initial_pose,
         orbital_image=np.asarray(image),
         orbital_extent=tuple(float(v) for v in extent),
@@ -103,7 +118,8 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
 
 
 def load_sim_dir(path: Path, start_xyyaw: tuple[float, float, float] | None = None) -> RunInputs:
-    """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png, rocks_true.csv."""
+    """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
+    rocks_true.csv, and the catalog file of every other landmark kind present (its catalog layer)."""
     import yaml
 
     path = Path(path)
@@ -112,7 +128,10 @@ def load_sim_dir(path: Path, start_xyyaw: tuple[float, float, float] | None = No
     for needed in ("bag", "catalog.csv"):
         if not (path / needed).exists():
             raise InputFileError(f"{path}: missing {needed} (expected the output of `fgslam sim`)")
-    inputs = load_bag(path / "bag", path / "catalog.csv", start_xyyaw=start_xyyaw, name=path.name)
+    others = {k.name: path / k.layer("catalog").file_name for k in kinds_with("catalog") if k.name != "rocks"}
+    others = {name: p for name, p in others.items() if p.exists()}
+    inputs = load_bag(path / "bag", path / "catalog.csv", start_xyyaw=start_xyyaw, name=path.name,
+                      kind_catalogs=others)
     world_yaml: dict = {}
     if (path / "world.yaml").exists():
         try:
@@ -136,9 +155,11 @@ def load_sim_dir(path: Path, start_xyyaw: tuple[float, float, float] | None = No
 
 
 def load_bag(
-    bag: Path, catalog_csv: Path, start_xyyaw: tuple[float, float, float] | None = None, name: str | None = None
+    bag: Path, catalog_csv: Path, start_xyyaw: tuple[float, float, float] | None = None, name: str | None = None,
+    kind_catalogs: dict[str, Path] | None = None,
 ) -> RunInputs:
-    """Read any ROS 2 bag with the fgslam topics plus an orbital catalog CSV (x,y,size,score)."""
+    """Read any ROS 2 bag with the fgslam topics plus an orbital rock catalog CSV (x,y,size,score)
+    and, in ``kind_catalogs``, the catalog files of other landmark kinds (kind name -> path)."""
     from fgslam.io.bag_reader import read_bag
     from fgslam.io.catalog_csv import read_catalog_csv
 
@@ -154,12 +175,21 @@ def load_bag(
     catalog = read_catalog_csv(catalog_csv)
     if len(catalog) < 3:
         raise InputFileError(f"{catalog_csv}: the catalog holds {len(catalog)} rocks; at least 3 are needed")
+    catalogs = {"rocks": catalog}
+    for kind_name, path in (kind_catalogs or {}).items():
+        try:
+            layer = kind_named(kind_name).layer("catalog")
+        except (UnknownKindError, RelocError) as exc:
+            raise InputFileError(f"{path}: cannot read a catalog of kind {kind_name!r}: {exc}") from None
+        if not Path(path).exists():
+            raise InputFileError(f"{path}: {kind_name} catalog not found")
+        catalogs[kind_name] = layer.read(Path(path))
     if start_xyyaw is not None:
         initial = start_pose_from_xyyaw(measurements[0].t, *start_xyyaw)
     else:
         initial = _initial_from_stream(measurements, str(bag))
     return RunInputs(
-        name=name or bag.stem, measurements=measurements, catalog=catalog, initial=initial,
+        name=name or bag.stem, measurements=measurements, catalogs=catalogs, initial=initial,
         source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv),
                 "report": str(getattr(stream, "report", ""))},
     )

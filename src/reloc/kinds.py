@@ -128,13 +128,14 @@ class LandmarkKind:
 _KINDS: dict[str, LandmarkKind] = {}
 _RESOLVED: dict[tuple[str, str, str], Any] = {}
 _BY_TYPE: dict[type, LandmarkKind] | None = None
+_BY_SYMBOL: dict[str, LandmarkKind] | None = None
 _CODES: dict[str, int] = {}  # stable per process: a kind keeps its code across re-registration
 _PLUGINS_LOADED = False
 
 
 def register_kind(kind: LandmarkKind) -> LandmarkKind:
     """Add ``kind`` to the registry; its name, rank and symbol must be free."""
-    global _BY_TYPE
+    global _BY_TYPE, _BY_SYMBOL
     if not isinstance(kind, LandmarkKind):
         raise KindLayerError(f"register_kind takes a LandmarkKind, got {type(kind).__name__}")
     for other in _KINDS.values():
@@ -146,18 +147,18 @@ def register_kind(kind: LandmarkKind) -> LandmarkKind:
             raise KindLayerError(f"kind {kind.name!r}: symbol {kind.symbol!r} is taken by {other.name!r}")
     _KINDS[kind.name] = kind
     _CODES.setdefault(kind.name, len(_CODES))
-    _BY_TYPE = None
+    _BY_TYPE = _BY_SYMBOL = None
     return kind
 
 
 def unregister_kind(name: str) -> None:
     """Remove kind ``name`` (tests; a run keeps its kinds)."""
-    global _BY_TYPE
+    global _BY_TYPE, _BY_SYMBOL
     kind_named(name)
     del _KINDS[name]
     for key in [k for k in _RESOLVED if k[0] == name]:
         del _RESOLVED[key]
-    _BY_TYPE = None
+    _BY_TYPE = _BY_SYMBOL = None
 
 
 @contextlib.contextmanager
@@ -232,9 +233,12 @@ def is_observation(obs: Any) -> bool:
 
 def kind_of_symbol(symbol: str) -> LandmarkKind:
     """The kind whose landmarks carry key character ``symbol``."""
-    for k in all_kinds():
-        if k.symbol == symbol:
-            return k
+    global _BY_SYMBOL
+    if _BY_SYMBOL is None:
+        _BY_SYMBOL = {k.symbol: k for k in all_kinds()}
+    kind = _BY_SYMBOL.get(symbol)
+    if kind is not None:
+        return kind
     raise UnknownKindError(f"no landmark kind uses key symbol {symbol!r}; registered: "
                            f"{ {k.symbol: k.name for k in _KINDS.values()} }")
 

@@ -36,7 +36,7 @@ def _feed(ekf: EkfSlam, run) -> tuple[EkfSlam, np.ndarray]:
     for k, step in enumerate(run.steps):
         ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
         e = ekf.estimate()
         d = e.position_m[:2] - run.truth_p[k + 1, :2]
         err.append(float(d @ np.linalg.solve(e.cov[:2, :2], d)))

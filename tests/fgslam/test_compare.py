@@ -21,7 +21,7 @@ def _compare(workers: int):
     cfg = CompareConfig(backends=("dr",), reference_backend="dr", backend_overrides={"dr": {"use_fixes": True}},
                         workers=workers)
     reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
-    return cfg, compare_world(inputs, cfg, relocalizer=reloc)
+    return cfg, compare_world(inputs, cfg, relocalizers=[reloc])
 
 
 @pytest.fixture(scope="module")

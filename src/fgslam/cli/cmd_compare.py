@@ -19,7 +19,7 @@ def compare_and_write(inputs_list: list, out: Path, cfg, console, rrd: bool = Tr
     comparisons = []
     for inputs in inputs_list:
         console.print(f"[bold]{inputs.name}[/bold]: {len(inputs.measurements)} measurements, "
-                      f"{len(inputs.catalog)} catalog rocks")
+                      ", ".join(f"{len(c)} catalog {k}" for k, c in inputs.catalogs.items()))
         with stream_progress(inputs, console) as progress:
             comparisons.append(compare_world(inputs, cfg, on_progress=progress.update))
     files = write_comparison(out, comparisons, cfg, rrd=rrd)

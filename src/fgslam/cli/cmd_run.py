@@ -73,10 +73,10 @@ def run_cmd(
 
     from fgslam.backends.registry import backend_config_dict, make_backend
     from fgslam.cli.progress import stream_progress
-    from fgslam.compare import run_key, run_metrics
+    from fgslam.compare import relocalizer_set, run_key, run_metrics
+    from fgslam.fix_sources import NoFixes, OnlineFixes
     from fgslam.inputs import truth_of
     from fgslam.outputs import write_run_outputs
-    from fgslam.relocalizer import Relocalizer
     from fgslam.runner import run_backend
     from reloc.config import config_to_dict
 
@@ -85,11 +85,10 @@ def run_cmd(
     inputs = load_inputs(directory, bag, catalog, start)
     gt = truth_of(inputs)
     be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))
-    reloc = None if no_reloc else Relocalizer(inputs.catalog, cfg.relocalizer)
+    fixes = NoFixes() if no_reloc else OnlineFixes(relocalizer_set(inputs, cfg))
     key = run_key(backend, not no_reloc)
     with stream_progress(inputs, console) as progress:
-        res = run_backend(be, inputs.measurements, relocalizer=reloc, config=cfg.runner,
-                          on_progress=progress.callback(key))
+        res = run_backend(be, inputs.measurements, fixes, config=cfg.runner, on_progress=progress.callback(key))
     met = run_metrics(res, gt, res.attempts, cfg.rpe_delta_m)
     used = {
         "backend": backend, "relocalization": not no_reloc, "inputs": inputs.source,

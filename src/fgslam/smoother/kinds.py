@@ -1,0 +1,180 @@
+"""The smoother's side of the landmark-kind seam: variable types by key symbol, what a kind's
+smoother layer provides, and the dispatch.
+
+Keys are ``gtsam.Symbol(c, i)``: ``x`` keyframe poses (Pose3), ``c`` the stereo calibration
+(Vector4), and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
+variable type its layer declares. A kind's smoother layer (``LandmarkKind.smoother``) is a class
+built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibration variable):
+
+- ``variable``: the :class:`VariableType` of its landmarks;
+- ``observe(obs, frame)``: associate one frame on the current keyframe (:class:`KeyframeFrame`)
+  and buffer its factors and new values into ``frame.graph`` / ``frame.values`` (they enter the
+  graph with the next keyframe's update); returns a :class:`reloc.backend.LandmarkUpdateReport`;
+- ``buffered_stamps(t)``: the keys it buffered since the last keyframe, stamped ``t`` (fixed lag);
+- ``on_keyframe()``: the keyframe update is done (buffers cleared);
+- ``drop(index)``: a buffered landmark's update failed, forget it;
+- ``marginalize(index, solver)``: the landmark leaves the fixed-lag window: freeze its estimate;
+- ``prune(t, oldest_kf)``: drop candidates that timed out or rest on marginalized keyframes;
+- ``refresh(T_world_kf, solver)``: after an update, pull the solver's estimates it caches;
+- ``landmark_map()``, ``n_landmarks``, ``n_frames`` (frames used), ``stats()`` (dict of counters);
+- optionally ``config_class``, built from ``SmootherConfig.kinds[name]`` (:func:`kind_config`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fgslam.errors import SmootherError
+from reloc.config import config_from_dict, config_to_dict
+from reloc.kinds import (
+    KindLayerError,
+    LandmarkKind,
+    UnknownKindError,
+    kind_named,
+    kind_of,
+    kind_of_symbol,
+    kinds_with,
+)
+
+POSE_SYMBOL, CALIB_SYMBOL = "x", "c"
+
+
+@dataclass(frozen=True)
+class VariableType:
+    """How the solver reads one type of variable: tangent ``dim``, its value in ``gtsam.Values``,
+    its estimate from an ISAM2 / fixed-lag smoother, and that value as an array."""
+
+    name: str
+    dim: int
+    value: Callable[[gtsam.Values, int], Any]
+    estimate: Callable[[Any, int], Any]
+    as_array: Callable[[Any], np.ndarray]
+
+
+POSE3 = VariableType("Pose3", 6, lambda v, k: v.atPose3(k), lambda s, k: s.calculateEstimatePose3(k),
+                     lambda x: x.matrix())
+POINT3 = VariableType("Point3", 3, lambda v, k: v.atPoint3(k), lambda s, k: s.calculateEstimatePoint3(k),
+                      lambda x: np.asarray(x, dtype=float))
+CALIBRATION = VariableType("Vector4", 4, lambda v, k: v.atVector(k), lambda s, k: s.calculateEstimateVector(k),
+                           lambda x: np.asarray(x, dtype=float))
+
+
+def symbol_of(key: int) -> str:
+    """The key's character (``x``, ``c``, a kind's symbol)."""
+    return chr(gtsam.Symbol(key).chr())
+
+
+def variable_type(symbol: str) -> VariableType:
+    """The variable type of keys with character ``symbol``; :class:`SmootherError` when no kind
+    uses it."""
+    if symbol == POSE_SYMBOL:
+        return POSE3
+    if symbol == CALIB_SYMBOL:
+        return CALIBRATION
+    try:
+        return kind_of_symbol(symbol).layer("smoother").variable
+    except (UnknownKindError, KindLayerError) as exc:
+        raise SmootherError(f"key symbol {symbol!r} is no variable of the smoother: {exc}") from None
+
+
+def kind_config(cls: type, kind: LandmarkKind, config) -> Any:
+    """The resolved config of ``kind``'s smoother layer ``cls`` (None when it declares none)."""
+    cfg_cls = getattr(cls, "config_class", None)
+    if cfg_cls is None:
+        return None
+    return config_from_dict(cfg_cls, config.kinds.get(kind.name), where=f"isam2.kinds.{kind.name}.")
+
+
+def resolved_kind_configs(config) -> dict[str, dict]:
+    """Every registered kind's resolved smoother settings, by kind name (for the saved config)."""
+    out = {}
+    for kind in kinds_with("smoother"):
+        cfg = kind_config(kind.layer("smoother"), kind, config)
+        if cfg is not None:
+            out[kind.name] = config_to_dict(cfg)
+    return out
+
+
+@dataclass(frozen=True)
+class KeyframeFrame:
+    """What a kind's ``observe`` sees: the current keyframe ``kf``, its estimate ``T_world_kf``
+    (4, 4), the odometry since it (``T_kf_now`` (4, 4), ``cov_kf_now`` (6, 6) GTSAM body frame),
+    and the buffers of the next keyframe update."""
+
+    kf: int
+    T_world_kf: np.ndarray
+    T_kf_now: np.ndarray
+    cov_kf_now: np.ndarray
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+
+
+class SmootherKinds:
+    """The smoother's kind layers, built on first use of each kind (creation order kept)."""
+
+    def __init__(self, config, calib_key: int | None) -> None:
+        self.config = config
+        self.calib_key = calib_key
+        self._by_type: dict[type, Any] = {}
+        self._by_name: dict[str, Any] = {}
+        for name in config.kinds:
+            try:
+                if not kind_named(name).has("smoother"):
+                    raise SmootherError(f"SmootherConfig.kinds[{name!r}]: kind {name!r} has no smoother layer")
+            except UnknownKindError as exc:
+                raise SmootherError(f"SmootherConfig.kinds: {exc}") from None
+
+    def for_obs(self, obs: Any):
+        """The layer of ``obs``'s kind; :class:`SmootherError` for an unregistered type or a kind
+        without a smoother layer."""
+        layer = self._by_type.get(type(obs))
+        if layer is None:
+            try:
+                kind = kind_of(obs)
+            except UnknownKindError as exc:
+                raise SmootherError(f"the smoother cannot observe {type(obs).__name__} at "
+                                    f"t={getattr(obs, 't', '?')}: {exc}") from None
+            layer = self._by_name.get(kind.name) or self._build(kind)
+            self._by_type[type(obs)] = layer
+        return layer
+
+    def for_key(self, key: int):
+        """The layer owning landmark ``key``; :class:`SmootherError` for a symbol of no kind."""
+        symbol = symbol_of(key)
+        try:
+            kind = kind_of_symbol(symbol)
+        except UnknownKindError as exc:
+            raise SmootherError(f"key {gtsam.DefaultKeyFormatter(key)} belongs to no landmark kind: {exc}") from None
+        return self._by_name.get(kind.name) or self._build(kind)
+
+    def named(self, name: str):
+        """The layer of kind ``name`` if it has been used (raises for an unregistered name)."""
+        try:
+            return self._by_name.get(kind_named(name).name)
+        except UnknownKindError as exc:
+            raise SmootherError(str(exc)) from None
+
+    def layer(self, name: str):
+        """The layer of kind ``name``, built if not used yet."""
+        try:
+            kind = kind_named(name)
+        except UnknownKindError as exc:
+            raise SmootherError(str(exc)) from None
+        return self._by_name.get(kind.name) or self._build(kind)
+
+    def used(self) -> list:
+        return list(self._by_name.values())
+
+    def _build(self, kind: LandmarkKind):
+        try:
+            cls = kind.layer("smoother")
+        except KindLayerError as exc:
+            raise SmootherError(f"the smoother cannot observe kind {kind.name!r}: {exc}") from None
+        layer = cls(self.config, kind, self.calib_key)
+        self._by_name[kind.name] = layer
+        return layer
