@@ -44,6 +44,9 @@ class DeadReckoningConfig:
     build_map: bool = True  # False: ignore landmark frames (the odometry-only curve needs no map)
 
 
+FUTURE_TOLERANCE_S = 0.1  # a fix up to this far ahead of the odometry is applied now
+
+
 class DeadReckoningError(FgslamError):
     """The dead-reckoning back-end was given an observation of no registered landmark kind."""
 
@@ -75,7 +78,10 @@ class DeadReckoning(Backend):
         self._stats = {"n_predict": 0, "n_landmark_frames": 0, "n_fixes_accepted": 0, "n_fixes_rejected": 0}
 
     def predict(self, step: OdometryStep) -> None:
-        """Integrate one odometry step: attitude by the IMU increment, position by v*dt along x."""
+        """Integrate one odometry step: attitude by the IMU increment, position by v*dt along x. A
+        step ending at or before the current time (e.g. before the start pose) is ignored."""
+        if step.t1 <= self._t:
+            return
         c = self.config
         R0 = self._T[:3, :3]
         R1 = R0 @ step.dR_base
@@ -148,6 +154,10 @@ class DeadReckoning(Backend):
         if fix.t_meas < self._hist_t[0]:
             self._stats["n_fixes_rejected"] += 1
             return FixOutcome(fix, accepted=False, reason="older than history")
+        if fix.t_meas > self._t + FUTURE_TOLERANCE_S:
+            self._stats["n_fixes_rejected"] += 1
+            return FixOutcome(fix, accepted=False,
+                              reason=f"ahead of the odometry (t_meas {fix.t_meas:.3f} s > {self._t:.3f} s)")
         _, T_old = self._pose_at(fix.t_meas)
         yaw_old = float(np.arctan2(T_old[1, 0], T_old[0, 0]))
         dyaw = fix.yaw_rad - yaw_old
