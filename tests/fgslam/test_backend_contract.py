@@ -12,7 +12,12 @@ import yaml
 from _synth_stream import make_stream
 
 from ekf.errors import EkfError
-from fgslam.backends.registry import BACKEND_NAMES, backend_config_dict, make_backend, resolved_config
+from fgslam.backends.registry import (
+    BACKEND_NAMES,
+    backend_config_dict,
+    make_backend,
+    resolved_config,
+)
 from fgslam.errors import FgslamError
 from fgslam.inputs import truth_of
 from fgslam.runner import RunnerError, run_backend
@@ -81,7 +86,7 @@ def test_implements_the_protocol(ran):
 
 
 def test_time_order(ran, stream):
-    name, be, res = ran
+    _, be, res = ran
     est = be.estimate()
     assert est.t == pytest.approx(res.t_end, abs=0.05)
     for traj in (res.final, res.online):
@@ -127,7 +132,7 @@ def test_a_late_fix_lands_at_its_measurement_time(stream, name):
 
 
 def test_unknown_kinds_are_refused(ran):
-    name, be, _ = ran
+    _, be, _ = ran
     with pytest.raises(PACKAGE_ERRORS, match="Unregistered"):
         be.observe(_obs(Unregistered, be.estimate().t + 0.01))
     with pytest.raises(PACKAGE_ERRORS, match="no_such_kind"):
@@ -141,7 +146,7 @@ def test_the_runner_refuses_unknown_kinds(stream):
 
 
 def test_landmark_maps_by_kind(ran):
-    name, be, res = ran
+    _, be, res = ran
     lm = be.landmark_map("rocks")
     assert lm.kind == "rocks" and len(lm) > 10 and list(res.landmarks) == ["rocks"]
     n = len(lm)

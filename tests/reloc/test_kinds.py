@@ -49,15 +49,12 @@ def test_registration_checks_name_rank_and_symbol():
             LandmarkKind("x1", Odd, rank=9, symbol=bad)
     with pytest.raises(KindLayerError, match="identifier"):
         LandmarkKind("two words", Odd, rank=9, symbol="q")
-    with pytest.raises(KindLayerError, match="already registered"):
-        with registered(LandmarkKind("rocks", Odd, rank=9, symbol="q")):
-            pass
-    with pytest.raises(KindLayerError, match="rank 4 is taken by 'rocks'"):
-        with registered(LandmarkKind("odd", Odd, rank=4, symbol="q")):
-            pass
-    with pytest.raises(KindLayerError, match="symbol 'l' is taken by 'rocks'"):
-        with registered(LandmarkKind("odd", Odd, rank=9, symbol="l")):
-            pass
+    with pytest.raises(KindLayerError, match="already registered"), registered(LandmarkKind("rocks", Odd, rank=9, symbol="q")):
+        pass
+    with pytest.raises(KindLayerError, match="rank 4 is taken by 'rocks'"), registered(LandmarkKind("odd", Odd, rank=4, symbol="q")):
+        pass
+    with pytest.raises(KindLayerError, match="symbol 'l' is taken by 'rocks'"), registered(LandmarkKind("odd", Odd, rank=9, symbol="l")):
+        pass
 
 
 def test_a_kind_is_known_only_while_registered_and_keeps_its_code():
@@ -75,9 +72,9 @@ def test_a_kind_is_known_only_while_registered_and_keeps_its_code():
 
 
 def test_a_layer_that_does_not_import_is_named():
-    with registered(LandmarkKind("odd", Odd, rank=9, symbol="q", ekf="no_such_module:Thing")):
-        with pytest.raises(KindLayerError, match="ekf layer 'no_such_module:Thing' does not import"):
-            kind_named("odd").layer("ekf")
+    odd = LandmarkKind("odd", Odd, rank=9, symbol="q", ekf="no_such_module:Thing")
+    with registered(odd), pytest.raises(KindLayerError, match="ekf layer 'no_such_module:Thing' does not import"):
+        kind_named("odd").layer("ekf")
 
 
 def test_sort_key_and_the_bag_writer_refuse_an_unknown_type(tmp_path):
