@@ -1,4 +1,4 @@
-"""The EKF's side of the landmark-kind seam: what a kind's EKF layer provides, and the dispatch.
+"""The EKF's side of the landmark-kind seam: what a kind's EKF layer provides.
 
 Landmarks of every kind share the filter state's landmark block (3D points in world, see
 :mod:`ekf.state`); the landmark book tags each with its kind's code, so a kind's update only
@@ -14,6 +14,9 @@ class built as ``cls(config, kind)`` with:
 - ``counts``: a dict of integer counters for ``stats().extra``;
 - optionally ``config_class``: a frozen dataclass of its own settings, built from
   ``EkfConfig.kinds[name]`` (:func:`kind_config`).
+
+The filter keeps them in a :class:`reloc.kind_layers.KindLayers` (built on first use, errors as
+:class:`ekf.errors.EkfInputError`).
 """
 
 from __future__ import annotations
@@ -24,15 +27,8 @@ from ekf.config import EkfConfig
 from ekf.errors import EkfInputError
 from ekf.state import FilterState
 from reloc.backend import LandmarkMap, LandmarkUpdateReport
-from reloc.config import config_from_dict, config_to_dict
-from reloc.kinds import (
-    KindLayerError,
-    LandmarkKind,
-    UnknownKindError,
-    kind_named,
-    kind_of,
-    kinds_with,
-)
+from reloc.kind_layers import KindLayers, config_with_kinds, layer_config
+from reloc.kinds import LandmarkKind
 
 
 class EkfKindUpdate(Protocol):
@@ -49,72 +45,23 @@ class EkfKindUpdate(Protocol):
 
 def kind_config(cls: type, kind: LandmarkKind, config: EkfConfig) -> Any:
     """The resolved config of ``kind``'s EKF layer ``cls`` (None when it declares none)."""
-    cfg_cls = getattr(cls, "config_class", None)
-    if cfg_cls is None:
-        return None
-    return config_from_dict(cfg_cls, config.kinds.get(kind.name), where=f"ekf.kinds.{kind.name}.")
+    return layer_config(cls, kind, config.kinds, "ekf")
 
 
-def resolved_kind_configs(config: EkfConfig) -> dict[str, dict]:
-    """Every registered kind's resolved EKF settings, by kind name (for the saved config)."""
-    out = {}
-    for kind in kinds_with("ekf"):
-        cls = kind.layer("ekf")
-        cfg = kind_config(cls, kind, config)
-        if cfg is not None:
-            out[kind.name] = config_to_dict(cfg)
+def resolved_ekf_config(config: EkfConfig) -> dict:
+    """The resolved config as a plain dict, every registered kind's EKF settings in ``kinds``."""
+    return config_with_kinds(config, "ekf", "ekf")
+
+
+def kind_updates(config: EkfConfig) -> KindLayers:
+    """The filter's kind updates, each built as ``cls(config, kind)`` on first use."""
+    return KindLayers("ekf", lambda kind: kind.layer("ekf")(config, kind), EkfInputError, "EKF", config.kinds)
+
+
+def kind_counts(updates: KindLayers) -> dict[str, int]:
+    """Every used kind's counters (summed where two kinds share a counter name)."""
+    out: dict[str, int] = {}
+    for upd in updates.used():
+        for k, v in upd.counts.items():
+            out[k] = out.get(k, 0) + int(v)
     return out
-
-
-class KindUpdates:
-    """The filter's kind updates, built on first use of each kind."""
-
-    def __init__(self, config: EkfConfig) -> None:
-        self.config = config
-        self._by_type: dict[type, EkfKindUpdate] = {}
-        self._by_name: dict[str, EkfKindUpdate] = {}
-        for name in config.kinds:  # overrides of a kind that does not exist: refused up front
-            try:
-                if not kind_named(name).has("ekf"):
-                    raise EkfInputError(f"EkfConfig.kinds[{name!r}]: kind {name!r} has no EKF layer")
-            except UnknownKindError as exc:
-                raise EkfInputError(f"EkfConfig.kinds: {exc}") from None
-
-    def for_obs(self, obs: Any) -> EkfKindUpdate:
-        """The update of ``obs``'s kind; :class:`EkfInputError` for an unregistered type or a kind
-        without an EKF layer."""
-        upd = self._by_type.get(type(obs))
-        if upd is None:
-            try:
-                kind = kind_of(obs)
-            except UnknownKindError as exc:
-                raise EkfInputError(f"the EKF cannot observe {type(obs).__name__} at t={getattr(obs, 't', '?')}: "
-                                    f"{exc}") from None
-            upd = self._build(kind)
-            self._by_type[type(obs)] = upd
-        return upd
-
-    def named(self, name: str) -> EkfKindUpdate | None:
-        """The update of kind ``name`` if it has been used (raises for an unregistered name)."""
-        try:
-            kind = kind_named(name)
-        except UnknownKindError as exc:
-            raise EkfInputError(str(exc)) from None
-        return self._by_name.get(kind.name)
-
-    def _build(self, kind: LandmarkKind) -> EkfKindUpdate:
-        try:
-            cls = kind.layer("ekf")
-        except KindLayerError as exc:
-            raise EkfInputError(f"the EKF cannot observe kind {kind.name!r}: {exc}") from None
-        upd = cls(self.config, kind)
-        self._by_name[kind.name] = upd
-        return upd
-
-    def counts(self) -> dict[str, int]:
-        """Every used kind's counters (summed where two kinds share a counter name)."""
-        out: dict[str, int] = {}
-        for upd in self._by_name.values():
-            for k, v in upd.counts.items():
-                out[k] = out.get(k, 0) + int(v)
-        return out

@@ -18,7 +18,7 @@ from ekf.blas import blas_limit
 from ekf.config import EkfConfig
 from ekf.errors import EkfError, EkfInputError
 from ekf.history import Entry, History
-from ekf.kinds import KindUpdates, resolved_kind_configs
+from ekf.kinds import kind_counts, kind_updates, resolved_ekf_config
 from ekf.motion import propagate, split_step
 from ekf.state import CALIB_DIM, POSE_DIM, FilterState
 from ekf.updates import attitude_model, fix_model, fix_residual, joseph_update
@@ -32,7 +32,6 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.calibration import calibration_report
-from reloc.config import config_to_dict
 from reloc.geometry import log_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 from reloc.measurements import GlobalFix
@@ -77,7 +76,7 @@ class EkfSlam(Backend):
             t_last_attitude=float(initial.t),
             t_last_checkpoint=float(initial.t),
         )
-        self._kinds = KindUpdates(self.config)
+        self._kinds = kind_updates(self.config)
         self._hist = History(self.config.history_s)
         self._traj_t: list[float] = []
         self._traj_T: list[np.ndarray] = []
@@ -166,7 +165,7 @@ class EkfSlam(Backend):
         """Counters, with landmark, association and fix-rejection details in ``extra``."""
         c = self._count
         extra = {k: v for k, v in c.items() if k not in ("n_predict", "n_landmark_frames", "n_fixes_accepted", "n_fixes_rejected")}
-        extra.update(self._kinds.counts())
+        extra.update(kind_counts(self._kinds))
         extra["n_tentative"] = int(np.sum(~self._s.book.confirmed))
         extra["fix_reject_reasons"] = dict(self._reject_reasons)
         if self._s.calibrated:
@@ -180,9 +179,7 @@ class EkfSlam(Backend):
     @classmethod
     def resolved_config(cls, config: EkfConfig) -> dict:
         """The resolved config, with every registered kind's resolved EKF settings in ``kinds``."""
-        out = config_to_dict(config)
-        out["kinds"] = {**out["kinds"], **resolved_kind_configs(config)}
-        return out
+        return resolved_ekf_config(config)
 
     def calibration(self) -> dict:
         """The estimated stereo calibration (empty without calibration states): rotation vector

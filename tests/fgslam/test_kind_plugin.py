@@ -180,7 +180,7 @@ def test_the_fixed_lag_smoother_marginalizes_cairns(world, cairns):
     inputs, true_xy = world
     sm = make_backend("isam2", inputs.initial, {"fixed_lag_s": 10.0})
     res = run_backend(sm, inputs.measurements)
-    layer = sm.kinds.layer("cairns")
+    layer = sm.kinds.get("cairns")
     assert layer.n_marginalized > 5 and sm.stats().extra["n_cairns_marginalized"] == layer.n_marginalized
     assert np.median(_map_error(res.landmarks["cairns"], true_xy)) < 0.15  # retired ones stay in the map
 

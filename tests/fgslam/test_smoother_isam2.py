@@ -39,7 +39,7 @@ def _all_estimates(sm: Isam2Smoother) -> dict[int, np.ndarray]:
     out = {}
     for i in range(len(sm.kfs)):
         out[X(i)] = sm.solver.pose(X(i))
-    for rec in sm.kinds.layer("rocks").store.mapped():
+    for rec in sm.kinds.get("rocks").store.mapped():
         out[L(rec.lid)] = sm.solver.point(L(rec.lid))
     return out
 
@@ -55,7 +55,7 @@ def test_incremental_estimate_equals_batch_levenberg_marquardt(short_run):
     fixes = [f for f, _ in synthetic_fixes(short_run, np.random.default_rng(1), period_s=9.0, delay_s=(1, 10))]
     sm = Isam2Smoother(short_run.initial_pose, cfg)
     drive(sm, short_run.measurements, fixes)
-    assert sm.stats().n_fixes_accepted >= 3 and len(sm.kinds.layer("rocks").store.mapped()) > 10
+    assert sm.stats().n_fixes_accepted >= 3 and len(sm.kinds.get("rocks").store.mapped()) > 10
     sm.solver.extra_iterations(5)
     graph = gtsam.NonlinearFactorGraph()
     factors = sm.solver.factors()

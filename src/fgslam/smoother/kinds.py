@@ -18,6 +18,8 @@ built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibr
 - ``refresh(T_world_kf, solver)``: after an update, pull the solver's estimates it caches;
 - ``landmark_map()``, ``n_landmarks``, ``n_frames`` (frames used), ``stats()`` (dict of counters);
 - optionally ``config_class``, built from ``SmootherConfig.kinds[name]`` (:func:`kind_config`).
+
+The smoother keeps them in a :class:`SmootherKinds` (a :class:`reloc.kind_layers.KindLayers`).
 """
 
 from __future__ import annotations
@@ -30,16 +32,8 @@ import gtsam
 import numpy as np
 
 from fgslam.errors import SmootherError
-from reloc.config import config_from_dict, config_to_dict
-from reloc.kinds import (
-    KindLayerError,
-    LandmarkKind,
-    UnknownKindError,
-    kind_named,
-    kind_of,
-    kind_of_symbol,
-    kinds_with,
-)
+from reloc.kind_layers import KindLayers, config_with_kinds, layer_config
+from reloc.kinds import KindLayerError, LandmarkKind, UnknownKindError, kind_of_symbol
 
 POSE_SYMBOL, CALIB_SYMBOL = "x", "c"
 
@@ -84,20 +78,12 @@ def variable_type(symbol: str) -> VariableType:
 
 def kind_config(cls: type, kind: LandmarkKind, config) -> Any:
     """The resolved config of ``kind``'s smoother layer ``cls`` (None when it declares none)."""
-    cfg_cls = getattr(cls, "config_class", None)
-    if cfg_cls is None:
-        return None
-    return config_from_dict(cfg_cls, config.kinds.get(kind.name), where=f"isam2.kinds.{kind.name}.")
+    return layer_config(cls, kind, config.kinds, "isam2")
 
 
-def resolved_kind_configs(config) -> dict[str, dict]:
-    """Every registered kind's resolved smoother settings, by kind name (for the saved config)."""
-    out = {}
-    for kind in kinds_with("smoother"):
-        cfg = kind_config(kind.layer("smoother"), kind, config)
-        if cfg is not None:
-            out[kind.name] = config_to_dict(cfg)
-    return out
+def resolved_smoother_config(config) -> dict:
+    """The resolved config as a plain dict, every registered kind's smoother settings in ``kinds``."""
+    return config_with_kinds(config, "smoother", "isam2")
 
 
 @dataclass(frozen=True)
@@ -114,67 +100,18 @@ class KeyframeFrame:
     values: gtsam.Values
 
 
-class SmootherKinds:
-    """The smoother's kind layers, built on first use of each kind (creation order kept)."""
+class SmootherKinds(KindLayers):
+    """The smoother's kind layers, each built as ``cls(config, kind, calib_key)`` on first use
+    (creation order kept), and found by an observation or by a landmark key."""
 
     def __init__(self, config, calib_key: int | None) -> None:
-        self.config = config
-        self.calib_key = calib_key
-        self._by_type: dict[type, Any] = {}
-        self._by_name: dict[str, Any] = {}
-        for name in config.kinds:
-            try:
-                if not kind_named(name).has("smoother"):
-                    raise SmootherError(f"SmootherConfig.kinds[{name!r}]: kind {name!r} has no smoother layer")
-            except UnknownKindError as exc:
-                raise SmootherError(f"SmootherConfig.kinds: {exc}") from None
-
-    def for_obs(self, obs: Any):
-        """The layer of ``obs``'s kind; :class:`SmootherError` for an unregistered type or a kind
-        without a smoother layer."""
-        layer = self._by_type.get(type(obs))
-        if layer is None:
-            try:
-                kind = kind_of(obs)
-            except UnknownKindError as exc:
-                raise SmootherError(f"the smoother cannot observe {type(obs).__name__} at "
-                                    f"t={getattr(obs, 't', '?')}: {exc}") from None
-            layer = self._by_name.get(kind.name) or self._build(kind)
-            self._by_type[type(obs)] = layer
-        return layer
+        super().__init__("smoother", lambda kind: kind.layer("smoother")(config, kind, calib_key), SmootherError,
+                         "smoother", config.kinds)
 
     def for_key(self, key: int):
         """The layer owning landmark ``key``; :class:`SmootherError` for a symbol of no kind."""
-        symbol = symbol_of(key)
         try:
-            kind = kind_of_symbol(symbol)
+            kind = kind_of_symbol(symbol_of(key))
         except UnknownKindError as exc:
             raise SmootherError(f"key {gtsam.DefaultKeyFormatter(key)} belongs to no landmark kind: {exc}") from None
-        return self._by_name.get(kind.name) or self._build(kind)
-
-    def named(self, name: str):
-        """The layer of kind ``name`` if it has been used (raises for an unregistered name)."""
-        try:
-            return self._by_name.get(kind_named(name).name)
-        except UnknownKindError as exc:
-            raise SmootherError(str(exc)) from None
-
-    def layer(self, name: str):
-        """The layer of kind ``name``, built if not used yet."""
-        try:
-            kind = kind_named(name)
-        except UnknownKindError as exc:
-            raise SmootherError(str(exc)) from None
-        return self._by_name.get(kind.name) or self._build(kind)
-
-    def used(self) -> list:
-        return list(self._by_name.values())
-
-    def _build(self, kind: LandmarkKind):
-        try:
-            cls = kind.layer("smoother")
-        except KindLayerError as exc:
-            raise SmootherError(f"the smoother cannot observe kind {kind.name!r}: {exc}") from None
-        layer = cls(self.config, kind, self.calib_key)
-        self._by_name[kind.name] = layer
-        return layer
+        return self.get(kind.name)
