@@ -42,10 +42,12 @@ class FixSourceError(FgslamError):
 
 class FixProducer(Protocol):
     """A relocalizer: matches the back-end's maps of ``kinds`` every ``period_s`` of stream time
-    (``build_time_s``: the wall time its catalog index took to build)."""
+    (``config``: its resolved settings, a dataclass; ``build_time_s``: the wall time its catalog
+    index took to build)."""
 
     kinds: tuple[str, ...]
     period_s: float
+    config: object
     build_time_s: float
 
     def wants(self, est: PoseEstimate) -> bool:
@@ -190,9 +192,9 @@ class OnlineFixes(NoFixes):
     and, about once per stream second, of how far the stream has got: no fix produced later can
     have ``t_recv`` before that time, which lets a :class:`FixFeed` consumer run alongside."""
 
-    def __init__(self, relocalizers: FixProducer | Iterable[FixProducer], sink: FixSink | None = None) -> None:
+    def __init__(self, relocalizers: Iterable[FixProducer], sink: FixSink | None = None) -> None:
         super().__init__()
-        self.relocalizers = [relocalizers] if hasattr(relocalizers, "attempt") else list(relocalizers)
+        self.relocalizers = list(relocalizers)
         self._sink = sink
         self._sink_t = -np.inf
         self._next: list[float] | None = None  # per relocalizer: stream time of its next attempt

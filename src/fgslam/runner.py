@@ -83,7 +83,7 @@ class RunResult:
     t_start: float
     t_end: float
     cpu_s: float = 0.0  # process CPU time of the pass
-    backend_cpu_s: float = 0.0  # CPU time inside the back-end's calls
+    backend_cpu_s: float = 0.0  # CPU time inside the back-end's calls (with time_cpu)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -155,12 +155,14 @@ def run_backend(
     *,
     config: RunnerConfig | None = None,
     on_progress: Callable[[float], None] | None = None,
+    time_cpu: bool = False,
 ) -> RunResult:
     """Run ``backend`` over ``measurements`` (time-ordered, consumed lazily) with fixes from
-    ``fixes`` (:mod:`fgslam.fix_sources`; default none)."""
+    ``fixes`` (:mod:`fgslam.fix_sources`; default none); ``time_cpu`` also measures the CPU time
+    of the back-end's calls (``RunResult.backend_cpu_s``, benchmarks)."""
     cfg = config or RunnerConfig()
     with blas_limit(cfg.blas_threads):
-        return _run(TimedBackend(backend), measurements, fixes or NoFixes(), cfg, on_progress)
+        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, on_progress)
 
 
 def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress) -> RunResult:

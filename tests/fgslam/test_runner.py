@@ -90,7 +90,7 @@ def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):
     cfg = RelocalizerConfig(period_s=4.0, delay_s=1.5)
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     be = make_backend("dr", stream.initial, {"use_fixes": True})
-    res = run_backend(be, stream.measurements, OnlineFixes(reloc))
+    res = run_backend(be, stream.measurements, OnlineFixes([reloc]))
     base = run_backend(make_backend("dr", stream.initial), stream.measurements)
     fixes = [a.fix for a in res.attempts if a.fix is not None]
     assert len(res.attempts) == pytest.approx(res.duration_s / 4.0, abs=1)
@@ -107,7 +107,7 @@ def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):
 def test_replaying_the_fix_list_reproduces_the_online_run(stream):
     cfg = RelocalizerConfig(period_s=4.0, delay_s=1.0)
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
-    online = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, OnlineFixes(reloc))
+    online = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, OnlineFixes([reloc]))
     fixes = [a.fix for a in online.attempts if a.fix is not None]
     replay = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, ReplayedFixes(fixes))
     assert [o.fix for o in replay.outcomes] == [o.fix for o in online.outcomes]

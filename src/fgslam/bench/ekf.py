@@ -118,7 +118,7 @@ def run_ekf(initial: PoseEstimate, measurements, config: EkfConfig, fixes: list[
     from fgslam.runner import run_backend
 
     ekf = EkfSlam(initial, config)
-    return ekf, run_backend(ekf, measurements, ReplayedFixes(fixes))
+    return ekf, run_backend(ekf, measurements, ReplayedFixes(fixes), time_cpu=True)
 
 
 def traverse_benchmark(world: str = "my2021", seed: int = 1, duration_s: float = 1000.0, distance_m: float = 66.0,

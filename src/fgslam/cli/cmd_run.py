@@ -85,7 +85,8 @@ def run_cmd(
     inputs = load_inputs(directory, bag, catalog, start)
     gt = truth_of(inputs)
     be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))
-    fixes = NoFixes() if no_reloc else OnlineFixes(relocalizer_set(inputs, cfg))
+    relocs = [] if no_reloc else relocalizer_set(inputs, cfg)
+    fixes = OnlineFixes(relocs) if relocs else NoFixes()
     key = run_key(backend, not no_reloc)
     with stream_progress(inputs, console) as progress:
         res = run_backend(be, inputs.measurements, fixes, config=cfg.runner, on_progress=progress.callback(key))
@@ -94,6 +95,7 @@ def run_cmd(
         "backend": backend, "relocalization": not no_reloc, "inputs": inputs.source,
         "runner": config_to_dict(cfg.runner), "relocalizer": config_to_dict(cfg.relocalizer),
         "backend_config": backend_config_dict(be),
+        "kind_relocalizers": {"+".join(r.kinds): config_to_dict(r.config) for r in relocs if r.kinds != ("rocks",)},
     }
     files = write_run_outputs(out, res, gt, met, used)
     if rrd is not None:

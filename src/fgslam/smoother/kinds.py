@@ -58,9 +58,13 @@ CALIBRATION = VariableType("Vector4", 4, lambda v, k: v.atVector(k), lambda s, k
                            lambda x: np.asarray(x, dtype=float))
 
 
+_INDEX_BITS = 56  # gtsam.Symbol: the character in the key's top 8 bits, the index below
+
+
 def symbol_of(key: int) -> str:
-    """The key's character (``x``, ``c``, a kind's symbol)."""
-    return chr(gtsam.Symbol(key).chr())
+    """The key's character (``x``, ``c``, a kind's symbol); ``gtsam.Symbol(key).chr()`` without
+    building a Symbol (this runs for every variable the solver reads)."""
+    return chr(key >> _INDEX_BITS)
 
 
 def variable_type(symbol: str) -> VariableType:

@@ -213,7 +213,7 @@ def drive(backend, measurements: list, fixes: list[GlobalFix] = (), sample_hz: f
     from fgslam.runner import RunnerConfig, run_backend
 
     res = run_backend(backend, measurements, ReplayedFixes(fixes), config=RunnerConfig(record_rate_hz=sample_hz),
-                      on_progress=progress)
+                      on_progress=progress, time_cpu=True)
     on = res.online
     return DriveResult(res.outcomes, on.t, on.T_world_base, on.cov, res.wall_s, res.backend_s, res.backend_cpu_s)
 
