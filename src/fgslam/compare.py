@@ -125,7 +125,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
 def relocalizer_set(inputs: RunInputs, cfg: CompareConfig) -> list[FixProducer]:
     """The relocalizers of a run: one per catalog of ``inputs``, rocks with ``cfg.relocalizer``,
     the other kinds with ``cfg.kind_relocalizers[name]``."""
-    configs = {name: c for name, c in cfg.kind_relocalizers.items()}
+    configs = dict(cfg.kind_relocalizers)
     if "rocks" in inputs.catalogs:
         configs["rocks"] = cfg.relocalizer
     return relocalizers_for(inputs.catalogs, configs)

@@ -179,7 +179,7 @@ def load_bag(
     for kind_name, path in (kind_catalogs or {}).items():
         try:
             layer = kind_named(kind_name).layer("catalog")
-        except (UnknownKindError, RelocError) as exc:
+        except RelocError as exc:  # an unregistered kind, or one without a catalog layer
             raise InputFileError(f"{path}: cannot read a catalog of kind {kind_name!r}: {exc}") from None
         if not Path(path).exists():
             raise InputFileError(f"{path}: {kind_name} catalog not found")
@@ -191,6 +191,7 @@ def load_bag(
     return RunInputs(
         name=name or bag.stem, measurements=measurements, catalogs=catalogs, initial=initial,
         source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv),
+                **({"kind_catalogs": {k: str(p) for k, p in kind_catalogs.items()}} if kind_catalogs else {}),
                 "report": str(getattr(stream, "report", ""))},
     )
 
