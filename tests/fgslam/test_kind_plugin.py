@@ -204,7 +204,7 @@ def test_kind_settings_are_resolved_overridden_and_checked(world, cairns):
         make_backend("isam2", inputs.initial, {"kinds": {"craters": {}}})
 
 
-def test_a_sim_directory_with_a_cairn_catalog_compares_and_records(tmp_path, world, cairns):
+def test_a_sim_directory_with_a_cairn_catalog_compares_and_records(tmp_path, cairns):
     from rerun.chunk import RrdReader
 
     from fgslam.compare import CompareConfig, compare_world
@@ -213,7 +213,7 @@ def test_a_sim_directory_with_a_cairn_catalog_compares_and_records(tmp_path, wor
     from fgslam.viz import rerun_log
     from sim.bag_writer import write_bag
 
-    inputs, _ = world
+    inputs, _ = _with_cairns(make_stream(seed=11, duration_s=30.0), seed=1)  # a short traverse: 4 passes
     write_bag(tmp_path / "d" / "bag", inputs.measurements)
     write_catalog_csv(tmp_path / "d" / "catalog.csv", inputs.catalogs["rocks"])
     write_cairn_csv(tmp_path / "d" / "cairns.csv", inputs.catalogs["cairns"])
@@ -223,7 +223,7 @@ def test_a_sim_directory_with_a_cairn_catalog_compares_and_records(tmp_path, wor
                         kind_relocalizers={"cairns": {"period_s": 4.0}})
     rocks = Relocalizer(loaded.catalogs["rocks"], cfg.relocalizer, matcher=NearestNeighbourMatcher(loaded.catalogs["rocks"].xy_m))
     wc = compare_world(loaded, cfg, relocalizers=[rocks, CairnRelocalizer(loaded.catalogs["cairns"], {"period_s": 4.0})])
-    assert wc.metrics["runs"]["ekf_reloc"]["landmarks_by_kind"]["cairns"] >= 10
+    assert wc.metrics["runs"]["ekf_reloc"]["landmarks_by_kind"]["cairns"] >= 5
     assert {a.source for a in wc.attempts} == {"rocks", "cairns"}
     path = rerun_log.write_comparison_rrd(tmp_path / "c.rrd", [wc])
     paths = {c.entity_path for c in RrdReader(path).stream()}
