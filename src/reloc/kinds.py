@@ -4,24 +4,18 @@ dispatch on.
 A landmark kind (rocks; craters next) is one module per layer, named in one
 :class:`LandmarkKind` and registered once (:func:`register_kind`); nothing else is edited:
 
-========== ============================= =====================================================
-field      layer                         what the named object provides
-========== ============================= =====================================================
-measurement reloc                         the observation type (``t``, ``xyz_base_m`` (N, 3),
-                                          ``cov_base_m2`` (N, 3, 3), ``size_m`` (N,), ``len``)
-rank       reloc                         its order among same-stamp measurements (motion
-                                          inputs and ground truth take 0-3, kinds 4 and up)
-symbol     fgslam.smoother               the GTSAM key character of its landmarks (not x, c)
-bag        reloc (sim writes, fgslam.io  a :class:`reloc.bag_spec.BagCodec`: topic, message
-           reads)                        types, decoder and encoder
-ekf        ekf                           an :class:`ekf.kinds.EkfKindUpdate` class: update,
-                                          history replay, landmark map
-smoother   fgslam.smoother               a :class:`fgslam.smoother.kinds.SmootherKind` class:
-                                          factors, variable type, marginalization, landmark map
-relocalizer fgslam                       a factory ``(catalog, config) -> relocalizer``
-catalog    fgslam.io                     a reader ``path -> catalog`` and the file name
-rerun      fgslam.viz                    a logger of its catalog and maps (default: points)
-========== ============================= =====================================================
+- ``measurement`` (reloc): the observation type (``t``, ``xyz_base_m`` (N, 3), ``cov_base_m2``
+  (N, 3, 3), ``size_m`` (N,), ``len``; :class:`LandmarkObservations`);
+- ``rank`` (reloc): its order among same-stamp measurements (motion inputs and ground truth take
+  0-3, kinds 4 and up);
+- ``symbol`` (fgslam.smoother): the GTSAM key character of its landmarks (not x, c);
+- ``bag`` (reloc; sim writes, fgslam.io reads): a :class:`reloc.bag_spec.BagCodec`;
+- ``ekf`` (ekf): an update class (:class:`ekf.kinds.EkfKindUpdate`): update, history replay, map;
+- ``smoother`` (fgslam.smoother): a layer class (see :mod:`fgslam.smoother.kinds`): factors,
+  variable type, marginalization, map;
+- ``relocalizer`` (fgslam): a factory ``(catalog, config) -> relocalizer``;
+- ``catalog`` (fgslam.io): the catalog's file name and reader;
+- ``rerun`` (fgslam.viz): a logger of its catalog and maps (default: points and ellipses).
 
 Layers are named as ``"module:attribute"`` strings and imported on first use, so ``reloc``
 never imports the packages above it and a run loads only the layers it needs. A kind may leave
