@@ -1,9 +1,9 @@
 """Write a measurement stream as a ROS 2 bag (rosbag2 directory, MCAP storage, zstd chunks).
 
-Topics and types are those of DESIGN.md (``sim.rosmsgs``): CmdVel -> geometry_msgs/TwistStamped,
-ImuSample -> sensor_msgs/Imu, WheelOdometry and GroundTruthPose -> nav_msgs/Odometry,
-RockObservations -> vision_msgs/Detection3DArray (rock centres in base_link, diameter as a cubic
-bbox, detector score and 3x3 position covariance in ``results[0]``). Header stamps and MCAP log
+Topics and types are those of DESIGN.md (``reloc.bag_spec``): CmdVel -> geometry_msgs/TwistStamped,
+ImuSample -> sensor_msgs/Imu, WheelOdometry and GroundTruthPose -> nav_msgs/Odometry, and each
+registered landmark kind's observation through its codec (``reloc.kinds``; rocks ->
+vision_msgs/Detection3DArray, ``reloc.rock_bag``). Header stamps and MCAP log
 times are the measurement time in integer nanoseconds. Messages are written in the order given,
 so a caller can also write a recording as it was received.
 
@@ -25,26 +25,24 @@ import numpy as np
 from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
-from reloc.measurements import (
-    CmdVel,
-    GroundTruthPose,
-    ImuSample,
-    Measurement,
-    RockObservations,
-    WheelOdometry,
-)
-from sim.errors import SimError
-from sim.rosmsgs import (
+from reloc.bag_spec import (
     CMD_VEL_TYPE,
     IMU_TYPE,
     ODOMETRY_TYPE,
-    ROCK_CLASS_ID,
-    ROCKS_TYPE,
     WORLD_FRAME,
     BagEncoding,
     TopicNames,
     typestore,
 )
+from reloc.kinds import kinds_with
+from reloc.measurements import (
+    CmdVel,
+    GroundTruthPose,
+    ImuSample,
+    Measurement,
+    WheelOdometry,
+)
+from sim.errors import SimError
 
 log = logging.getLogger(__name__)
 
@@ -169,34 +167,6 @@ class _Encoder:
             np.zeros(36),
         )
 
-    def rocks(self, m: RockObservations, ns: int):
-        T = self.types
-        identity = (0.0, 0.0, 0.0, 1.0)
-        detections = []
-        for i in range(len(m)):
-            cov6 = np.zeros((6, 6))
-            cov6[:3, :3] = m.cov_base_m2[i]
-            cov6[3:, 3:] = np.eye(3) * self.enc.rock_rotation_var
-            centre = m.xyz_base_m[i]
-            d = float(m.size_m[i])
-            result = T["vision_msgs/msg/ObjectHypothesisWithPose"](
-                hypothesis=T["vision_msgs/msg/ObjectHypothesis"](
-                    class_id=ROCK_CLASS_ID, score=float(m.score[i])
-                ),
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](
-                    pose=self.pose(centre, identity), covariance=cov6.ravel()
-                ),
-            )
-            bbox = T["vision_msgs/msg/BoundingBox3D"](
-                center=self.pose(centre, identity), size=self.vec3((d, d, d))
-            )
-            detections.append(
-                T["vision_msgs/msg/Detection3D"](
-                    header=self.header(ns, self.frame_base), results=[result], bbox=bbox, id=""
-                )
-            )
-        return T[ROCKS_TYPE](header=self.header(ns, self.frame_base), detections=detections)
-
 
 def _remove_bag_dir(path: Path) -> None:
     """Delete an existing bag directory, refusing anything that does not look like one."""
@@ -242,8 +212,13 @@ def write_bag(
         ImuSample: (topics.imu, IMU_TYPE, enc.imu),
         WheelOdometry: (topics.wheel_odom, ODOMETRY_TYPE, enc.wheel),
         GroundTruthPose: (topics.ground_truth, ODOMETRY_TYPE, enc.ground_truth),
-        RockObservations: (topics.rocks, ROCKS_TYPE, enc.rocks),
     }
+    for kind in kinds_with("bag"):  # landmark observations through their kind's codec
+        codec = kind.layer("bag")
+        routes[kind.measurement_type] = (
+            topics.topic_of(kind.name, codec), codec.msgtypes[0],
+            lambda m, ns, encode=codec.encode: encode(m, ns, enc),
+        )
     counts: dict[str, int] = {}
     connections = {}
     ns_min, ns_max = None, None
@@ -255,7 +230,8 @@ def write_bag(
                 route = routes.get(type(m))
                 if route is None:
                     raise BagWriteError(
-                        f"cannot write {type(m).__name__} to bag {path}: unknown type"
+                        f"cannot write {type(m).__name__} to bag {path}: unknown type (neither a motion input, "
+                        "ground truth nor the observation of a registered landmark kind with a bag layer)"
                     )
                 topic, msgtype, build = route
                 ns = stamp_ns(m.t)

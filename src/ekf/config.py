@@ -104,3 +104,6 @@ class EkfConfig:
     future_tolerance_s: NonNegative = 0.1  # a fix up to this far ahead of the filter is applied now
     trajectory_period_s: NonNegative = 0.0  # pose history sampling; 0 -> every step
     blas_threads: NonNegativeInt = 1  # BLAS threads during updates (see ekf.blas); 0 -> library default
+    # settings of the other landmark kinds' EKF updates, by kind name (each kind's layer declares
+    # its config class; the rock settings are the fields above), see ekf.kinds
+    kinds: dict = field(default_factory=dict)

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from ekf.config import MotionNoiseConfig
-from ekf.so3 import exp_so3, log_so3, skew
+from reloc.geometry import exp_so3, log_so3, skew
 from reloc.odometry import OdometryStep, pitch_rad
 
 

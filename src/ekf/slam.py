@@ -1,9 +1,10 @@
 """EKF-SLAM of the reference design, implementing :class:`reloc.backend.Backend`.
 
 Reads like the paper (II.C): predict from command speed + IMU orientation increments with
-dynamic process noise; update landmarks from stereo rock positions (association and the stereo
-point model live in :mod:`reloc`); apply planar global fixes behind a distance/yaw gate and a
-Mahalanobis gate; roll back and replay for late fixes.
+dynamic process noise; update landmarks from stereo observations, each through its kind's
+update (:mod:`ekf.kinds`; rocks: :mod:`ekf.rocks`, association and the stereo point model in
+:mod:`reloc`); apply planar global fixes behind a distance/yaw gate and a Mahalanobis gate; roll
+back and replay for late fixes.
 """
 
 from __future__ import annotations
@@ -15,14 +16,14 @@ import numpy as np
 
 from ekf.blas import blas_limit
 from ekf.config import EkfConfig
-from ekf.errors import EkfInputError
+from ekf.errors import EkfError, EkfInputError
 from ekf.history import Entry, History
-from ekf.landmarks import LandmarkUpdater
+from ekf.kinds import kind_counts, kind_updates, resolved_ekf_config
 from ekf.motion import propagate, split_step
-from ekf.so3 import log_so3, project_so3
 from ekf.state import CALIB_DIM, POSE_DIM, FilterState
 from ekf.updates import attitude_model, fix_model, fix_residual, joseph_update
 from reloc.backend import (
+    Backend,
     BackendStats,
     FixOutcome,
     LandmarkMap,
@@ -31,8 +32,9 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.calibration import calibration_report
+from reloc.geometry import log_so3, project_so3
 from reloc.landmark_book import LandmarkBook
-from reloc.measurements import GlobalFix, RockObservations
+from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep
 
 log = logging.getLogger(__name__)
@@ -42,7 +44,7 @@ _T_EPS = 1e-9
 _I3 = np.eye(3)
 
 
-class EkfSlam:
+class EkfSlam(Backend):
     """EKF-SLAM back-end: ``EkfSlam(initial, config)``; see :class:`reloc.backend.Backend`."""
 
     name = "ekf"
@@ -72,10 +74,9 @@ class EkfSlam:
             head=head,
             book=LandmarkBook(self.config.book),
             t_last_attitude=float(initial.t),
-            t_last_frame=-math.inf,
             t_last_checkpoint=float(initial.t),
         )
-        self._landmarks = LandmarkUpdater(self.config)
+        self._kinds = kind_updates(self.config)
         self._hist = History(self.config.history_s)
         self._traj_t: list[float] = []
         self._traj_T: list[np.ndarray] = []
@@ -97,9 +98,13 @@ class EkfSlam:
         self._count["n_predict"] += 1
         self._do_step(step)
 
-    def update_landmarks(self, obs: RockObservations) -> LandmarkUpdateReport:
-        """Associate, update and initialise landmarks from one rock frame; hygiene and map bound."""
-        self._check_obs(obs)
+    def observe(self, obs) -> LandmarkUpdateReport:
+        """Associate, update and initialise landmarks from one frame of a registered kind, through
+        that kind's update (:mod:`ekf.kinds`); hygiene and the map bound."""
+        self._kinds.for_obs(obs).check(obs)
+        if obs.t < self._s.t_input:
+            raise EkfInputError(
+                f"{type(obs).__name__} at t={obs.t:.6f} s is out of order: newest input is {self._s.t_input:.6f} s")
         self._count["n_landmark_frames"] += 1
         with blas_limit(self.config.blas_threads):
             return self._do_obs(obs)
@@ -142,17 +147,11 @@ class EkfSlam:
         s = self._s
         return PoseEstimate(t=s.t, T_world_base=self._T(), cov=s.P[:POSE_DIM, :POSE_DIM].copy())
 
-    def landmark_map(self) -> LandmarkMap:
-        """Confirmed landmarks in world with marginal covariances (tentative ones are left out)."""
-        s = self._s
-        rows = np.flatnonzero(s.book.confirmed)
-        return LandmarkMap(
-            ids=s.book.ids[rows].copy(),
-            xyz_world_m=s.l_world[rows].copy(),
-            cov_world_m2=s.landmark_cov_blocks(rows),
-            size_m=s.book.size_m[rows],
-            n_obs=s.book.n_obs[rows].copy(),
-        )
+    def landmark_map(self, kind: str) -> LandmarkMap:
+        """Confirmed landmarks of ``kind`` in world with marginal covariances (tentative ones are
+        left out); empty for a kind not observed yet."""
+        upd = self._kinds.named(kind)
+        return LandmarkMap.empty(kind) if upd is None else upd.landmark_map(self._s)
 
     def trajectory(self) -> Trajectory:
         """Filtered pose history (one entry per step, or per ``trajectory_period_s``)."""
@@ -166,7 +165,7 @@ class EkfSlam:
         """Counters, with landmark, association and fix-rejection details in ``extra``."""
         c = self._count
         extra = {k: v for k, v in c.items() if k not in ("n_predict", "n_landmark_frames", "n_fixes_accepted", "n_fixes_rejected")}
-        extra.update(self._landmarks.counts)
+        extra.update(kind_counts(self._kinds))
         extra["n_tentative"] = int(np.sum(~self._s.book.confirmed))
         extra["fix_reject_reasons"] = dict(self._reject_reasons)
         if self._s.calibrated:
@@ -176,6 +175,11 @@ class EkfSlam:
             n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],
             n_landmarks=int(np.sum(self._s.book.confirmed)), extra=extra,
         )
+
+    @classmethod
+    def resolved_config(cls, config: EkfConfig) -> dict:
+        """The resolved config, with every registered kind's resolved EKF settings in ``kinds``."""
+        return resolved_ekf_config(config)
 
     def calibration(self) -> dict:
         """The estimated stereo calibration (empty without calibration states): rotation vector
@@ -217,17 +221,6 @@ class EkfSlam:
                 f"OdometryStep [{step.t0:.6f}, {step.t1:.6f}] s is out of order: the filter is at "
                 f"{self._s.t:.6f} s (newest input {self._s.t_input:.6f} s)")
 
-    def _check_obs(self, obs: RockObservations) -> None:
-        arrays = (obs.xyz_base_m, obs.cov_base_m2, obs.size_m, obs.score)
-        if not math.isfinite(obs.t) or not all(np.all(np.isfinite(a)) for a in arrays):
-            raise EkfInputError(f"RockObservations at t={obs.t} contains NaN or inf")
-        n = len(obs)
-        if obs.xyz_base_m.shape != (n, 3) or obs.cov_base_m2.shape != (n, 3, 3) or obs.size_m.shape != (n,):
-            raise EkfInputError("RockObservations arrays have inconsistent shapes")
-        if obs.t < self._s.t_input:
-            raise EkfInputError(
-                f"RockObservations at t={obs.t:.6f} s is out of order: newest input is {self._s.t_input:.6f} s")
-
     # ------------------------------------------------------------------ processing (also used by replay)
     def _do_step(self, step: OdometryStep) -> None:
         s, cfg = self._s, self.config
@@ -264,10 +257,10 @@ class EkfSlam:
         if not self._replaying:
             self._count["n_attitude_updates"] += 1
 
-    def _do_obs(self, obs: RockObservations) -> LandmarkUpdateReport:
+    def _do_obs(self, obs) -> LandmarkUpdateReport:
         s = self._s
         s.t_input = max(s.t_input, obs.t)
-        report = self._landmarks.update(s, obs, count=not self._replaying)
+        report = self._kinds.for_obs(obs).update(s, obs, count=not self._replaying)
         self._record()
         self._hist.log.append(Entry("obs", obs.t, obs))
         return report
@@ -357,11 +350,14 @@ class EkfSlam:
         for e in entries:
             if e.kind == "step":
                 self._do_step(e.item)
-            elif e.kind == "obs":
+            elif e.kind == "obs":  # a landmark frame of any kind: its kind's update again
                 self._do_obs(e.item)
-            else:
+            elif e.kind == "fix":
                 self._gate_and_apply(e.item, force=True)
                 self._hist.log.append(e)
+            else:
+                raise EkfError(f"history entry of unknown kind {e.kind!r} at t={e.t}: the log holds steps, "
+                               "landmark frames and fixes only")
 
     # ------------------------------------------------------------------ helpers
     def _rejected(self, fix: GlobalFix, reason: str) -> FixOutcome:

@@ -5,7 +5,8 @@ dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
 :mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
 :class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
 holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
-(see :class:`reloc.calibration.CalibrationConfig`).
+(see :class:`reloc.calibration.CalibrationConfig`). The landmarks ``dl_i`` are 3D points of every
+landmark kind in one block; ``book.kind`` tags each with its kind (:mod:`ekf.kinds`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ekf.so3 import exp_so3, project_so3
+from reloc.geometry import exp_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 
 POSE_DIM = 6
@@ -43,20 +44,20 @@ class FilterState:
     """Mutable filter state; :meth:`copy` gives an independent snapshot (checkpoints)."""
 
     t: float  # time of the pose (end of the last step)
-    t_input: float  # newest input time processed (step end or rock frame)
+    t_input: float  # newest input time processed (step end or landmark frame)
     p_world: np.ndarray  # (3,)
     R_world_base: np.ndarray  # (3, 3)
     l_world: np.ndarray  # (n, 3)
     P: np.ndarray  # (6 + 3n, 6 + 3n)
     book: LandmarkBook
     t_last_attitude: float
-    t_last_frame: float
     t_last_checkpoint: float
     n_steps_since_orthonormalise: int = 0
     fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
     head: int = POSE_DIM  # states before the landmarks: the pose, and the calibration when on
     calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
     calib_s: float = 1.0  # measured / true range
+    t_last_frame: dict = field(default_factory=dict)  # kind name -> time of its last frame used
 
     @property
     def calibrated(self) -> bool:
@@ -77,7 +78,7 @@ class FilterState:
             P=self.P.copy(),
             book=self.book.copy(),
             t_last_attitude=self.t_last_attitude,
-            t_last_frame=self.t_last_frame,
+            t_last_frame=dict(self.t_last_frame),
             t_last_checkpoint=self.t_last_checkpoint,
             n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
             fix_times=self.fix_times,

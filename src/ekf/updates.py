@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.blas import dsyr2k
 
-from ekf.so3 import skew, wrap_angle, yaw_of
+from reloc.geometry import skew, wrap_angle, yaw_of
 
 E_Z = np.array([0.0, 0.0, 1.0])
 

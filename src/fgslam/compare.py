@@ -18,9 +18,10 @@ import numpy as np
 
 from fgslam import metrics as M
 from fgslam.errors import FgslamError
+from fgslam.fix_sources import FixProducer, relocalizers_for
 from fgslam.inputs import RunInputs, truth_of
 from fgslam.passes import Pass, run_passes
-from fgslam.relocalizer import FixAttempt, Relocalizer, RelocalizerConfig
+from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
 from reloc.backend import Trajectory
 from reloc.config import Positive, PositiveInt, checked
@@ -43,7 +44,8 @@ class CompareConfig:
     backends: tuple[str, ...] = ("ekf", "isam2")
     reference_backend: str = "isam2"
     runner: RunnerConfig = field(default_factory=RunnerConfig)
-    relocalizer: RelocalizerConfig = field(default_factory=RelocalizerConfig)
+    relocalizer: RelocalizerConfig = field(default_factory=RelocalizerConfig)  # the rocks' relocalizer
+    kind_relocalizers: dict = field(default_factory=dict)  # other landmark kinds' relocalizer settings, by kind
     backend_overrides: dict = field(default_factory=dict)  # name -> config overrides
     rpe_delta_m: Positive = 10.0
     workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
@@ -56,6 +58,27 @@ class CompareConfig:
             raise CompareError(f"unknown back-end(s) {unknown} in backends/reference_backend; choose from {list(BACKEND_NAMES)}")
         for name, overrides in self.backend_overrides.items():
             backend_config(name, overrides, where=f"backend_overrides.{name}.")
+
+
+DR_OVERRIDES = {"build_map": False}  # the odometry-only pass needs no map
+
+
+def resolved_compare_config(cfg: CompareConfig) -> dict:
+    """``cfg`` as a plain dict with each compared back-end's *resolved* config (every value) in
+    ``backend_overrides``, so the saved file reproduces the run when given back as overrides."""
+    from fgslam.backends.registry import resolved_config
+    from reloc.config import config_to_dict
+
+    out = config_to_dict(cfg)
+    out["backend_overrides"] = {name: resolved_config(name, cfg.backend_overrides.get(name)) for name in cfg.backends}
+    return out
+
+
+def resolved_dead_reckoning_config() -> dict:
+    """The resolved config of the comparison's dead-reckoning pass."""
+    from fgslam.backends.registry import resolved_config
+
+    return resolved_config("dr", DR_OVERRIDES)
 
 
 def run_key(backend: str, reloc: bool) -> str:
@@ -82,7 +105,8 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
             "wall_s": res.wall_s, "backend_s": res.backend_s, "match_s": res.match_s,
             "duration_s": res.duration_s, "real_time_factor": M.real_time_factor(res.duration_s, res.wall_s),
         },
-        "n_landmarks": len(res.landmarks),
+        "n_landmarks": res.n_landmarks,
+        "landmarks_by_kind": {k: len(m) for k, m in res.landmarks.items()},
     }
     fixes = res.fixes_sent
     accepted_t = {(o.fix.t_meas, o.fix.t_recv) for o in res.outcomes if o.accepted}
@@ -110,6 +134,15 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     return out
 
 
+def relocalizer_set(inputs: RunInputs, cfg: CompareConfig) -> list[FixProducer]:
+    """The relocalizers of a run: one per catalog of ``inputs``, rocks with ``cfg.relocalizer``,
+    the other kinds with ``cfg.kind_relocalizers[name]``."""
+    configs = dict(cfg.kind_relocalizers)
+    if "rocks" in inputs.catalogs:
+        configs["rocks"] = cfg.relocalizer
+    return relocalizers_for(inputs.catalogs, configs)
+
+
 @dataclass
 class WorldComparison:
     """The comparison on one input: runs by key (see :func:`run_key`), the dead-reckoning run,
@@ -128,9 +161,11 @@ def compare_world(
     inputs: RunInputs,
     config: CompareConfig | None = None,
     on_progress: Callable[[str, float], None] | None = None,
-    relocalizer: Relocalizer | None = None,
+    relocalizers: list[FixProducer] | None = None,
 ) -> WorldComparison:
-    """Run dead reckoning, the reference pass, and every back-end with and without the shared fixes."""
+    """Run dead reckoning, the reference pass, and every back-end with and without the shared
+    fixes; the reference pass relocalizes with ``relocalizers`` (default: one per catalog of the
+    inputs, :func:`fgslam.fix_sources.relocalizers_for`)."""
     cfg = config or CompareConfig()
     if not cfg.backends:
         raise CompareError("no back-end to compare")
@@ -139,16 +174,16 @@ def compare_world(
     wall0 = time.perf_counter()
     gt = truth_of(inputs)
 
-    reloc = relocalizer or Relocalizer(inputs.catalog, cfg.relocalizer)
+    relocs = relocalizers if relocalizers is not None else relocalizer_set(inputs, cfg)
     ref_key = run_key(cfg.reference_backend, True)
-    passes = [Pass(DR_KEY, "dr", {"build_map": False}, "none", "dead reckoning")]
+    passes = [Pass(DR_KEY, "dr", DR_OVERRIDES, "none", "dead reckoning")]
     for name in cfg.backends:
         for with_reloc in (False, True):
             key = run_key(name, with_reloc)
             mode = "online" if key == ref_key else ("replay" if with_reloc else "none")
             label = run_label(key) + (" (reference)" if mode == "online" else "")
             passes.append(Pass(key, name, cfg.backend_overrides.get(name), mode, label))
-    runs = run_passes(inputs, passes, cfg.runner, reloc, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
+    runs = run_passes(inputs, passes, cfg.runner, relocs, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
     dr = runs.pop(DR_KEY)
     attempts = runs[ref_key].attempts
     ordered = {run_key(n, r): runs[run_key(n, r)] for n in cfg.backends for r in (False, True)}
@@ -163,7 +198,7 @@ def compare_world(
         "distance_m": M.path_length_m(gt.positions_m) if gt is not None else float("nan"),
         "wall_s": wall,
         "real_time_factor": M.real_time_factor(duration, wall),
-        "matcher_build_s": getattr(reloc, "build_time_s", 0.0),
+        "matcher_build_s": sum(r.build_time_s for r in relocs),
         "reference_backend": cfg.reference_backend,
         "runs": met,
     }

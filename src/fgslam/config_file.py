@@ -1,8 +1,8 @@
 """Config files given with ``--config``: YAML overrides of the defaults, or a saved ``config.yaml``.
 
 A run's or a comparison's own ``config.yaml`` is accepted back as it was written, so a result can
-be reproduced from its directory: ``fgslam compare`` writes ``{config: <CompareConfig>, inputs:
-[...]}``, ``fgslam run`` writes the runner, relocalizer and back-end sections beside what it ran
+be reproduced from its directory: ``fgslam compare`` writes ``{config: <CompareConfig>,
+dead_reckoning: <its resolved config>, inputs: [...]}``, ``fgslam run`` writes the runner, relocalizer and back-end sections beside what it ran
 (``backend``, ``relocalization``, ``inputs``), and ``fgslam sim`` writes ``world.yaml`` (its
 ``config`` section is the simulator's). What describes the inputs is provenance, not config, and
 is not read back. Every value is checked by :func:`reloc.config.config_from_dict`; errors name
@@ -44,7 +44,7 @@ def read_yaml_mapping(path: Path, what: str = "config") -> dict:
 
 def compare_overrides(data: dict) -> dict:
     """CompareConfig overrides from a file's mapping: plain overrides, or a saved run/compare config."""
-    if "config" in data and set(data) <= {"config", "inputs"}:  # a comparison's config.yaml
+    if "config" in data and set(data) <= {"config", "inputs", "dead_reckoning"}:  # a comparison's config.yaml
         return data["config"] if data["config"] is not None else {}
     if "backend_config" in data or "backend" in data:  # a run's config.yaml
         backend = data.get("backend")

@@ -1,6 +1,6 @@
-"""What a run or a comparison consumes: a measurement stream, the orbital catalog, the start pose,
-optional ground truth and an optional orbital image, from a ``fgslam sim`` directory, from any bag
-plus a catalog CSV, or straight from the simulator."""
+"""What a run or a comparison consumes: a measurement stream, the orbital catalogs (one per
+landmark kind), the start pose, optional ground truth and an optional orbital image, from a
+``fgslam sim`` directory, from any bag plus catalog files, or straight from the simulator."""
 
 from __future__ import annotations
 
@@ -14,7 +14,9 @@ from scipy.spatial.transform import Rotation
 
 from fgslam.errors import InputFileError
 from reloc.backend import PoseEstimate, Trajectory, known_start_cov
-from reloc.measurements import CmdVel, GroundTruthPose, ImuSample, RockCatalog, WheelOdometry
+from reloc.errors import RelocError
+from reloc.kinds import UnknownKindError, kind_named, kinds_with
+from reloc.measurements import CmdVel, GroundTruthPose, ImuSample, WheelOdometry
 
 log = logging.getLogger(__name__)
 
@@ -28,19 +30,31 @@ STREAM_ABOVE_MESSAGES = 500_000
 @dataclass
 class RunInputs:
     """One traverse: ``measurements`` (time-ordered; a list, or a re-iterable stream such as
-    :class:`fgslam.io.bag_reader.BagSource` read anew at every pass), ``catalog``, ``initial`` pose,
-    optional ``orbital_image`` (H, W, 3) uint8 with ``orbital_extent`` (xmin, xmax, ymin, ymax)
-    metres in world (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), and ``source`` (what it
-    was read from)."""
+    :class:`fgslam.io.bag_reader.BagSource` read anew at every pass), ``catalogs`` (landmark kind
+    name -> its orbital catalog, e.g. ``{"rocks": RockCatalog}``), ``initial`` pose, optional
+    ``orbital_image`` (H, W, 3) uint8 with ``orbital_extent`` (xmin, xmax, ymin, ymax) metres in world
+    (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), and ``source`` (what it was read from)."""
 
     name: str
     measurements: Iterable
-    catalog: RockCatalog
+    catalogs: dict
     initial: PoseEstimate
     orbital_image: np.ndarray | None = None
     orbital_extent: tuple[float, float, float, float] | None = None
     rocks_true_xy: np.ndarray | None = None
     source: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        try:
+            for name in self.catalogs:
+                kind_named(name)
+        except UnknownKindError as exc:
+            raise InputFileError(f"{self.name}: a catalog of an unknown landmark kind: {exc}") from None
+
+    @property
+    def catalog(self):
+        """The rock catalog (``catalogs["rocks"]``; None without one)."""
+        return self.catalogs.get("rocks")
 
 
 def start_pose_from_truth(gt: GroundTruthPose) -> PoseEstimate:
@@ -132,7 +146,7 @@ def from_sim_run(run, name: str | None = None, orbital_gsd_m: float = 0.1) -> Ru
     return RunInputs(
         name=name or str(getattr(run.config, "world", "sim")),
         measurements=list(run.measurements),
-        catalog=run.catalog,
+        catalogs={"rocks": run.catalog},
         initial=run.initial_pose,
         orbital_image=np.asarray(image),
         orbital_extent=tuple(float(v) for v in extent),
@@ -167,7 +181,8 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
 
 def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
     """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
-    rocks_true.csv (refused when its manifest says it was not completely written)."""
+    rocks_true.csv, and the catalog file of every other landmark kind present (its catalog layer);
+    refused when its manifest says it was not completely written."""
     import yaml
 
     from fgslam.io.outdir import require_complete
@@ -179,7 +194,9 @@ def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
     for needed in ("bag", "catalog.csv"):
         if not (path / needed).exists():
             raise InputFileError(f"{path}: missing {needed} (expected the output of `fgslam sim`)")
-    inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name)
+    others = {k.name: path / k.layer("catalog").file_name for k in kinds_with("catalog") if k.name != "rocks"}
+    others = {name: p for name, p in others.items() if p.exists()}
+    inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name, kind_catalogs=others)
     world_yaml: dict = {}
     if (path / "world.yaml").exists():
         try:
@@ -203,11 +220,12 @@ def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
 
 
 def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name: str | None = None,
-             stream: bool | None = None) -> RunInputs:
-    """Read any ROS 2 bag with the fgslam topics plus an orbital catalog CSV (x,y,size,score);
-    the start pose is the first ground truth unless ``start`` gives one. ``stream``: iterate the
-    bag from disk at every pass (True), read it into memory once (False), or decide by its size
-    (None: stream above :data:`STREAM_ABOVE_MESSAGES` messages)."""
+             kind_catalogs: dict[str, Path] | None = None, stream: bool | None = None) -> RunInputs:
+    """Read any ROS 2 bag with the fgslam topics plus an orbital rock catalog CSV (x,y,size,score)
+    and, in ``kind_catalogs``, the catalog files of other landmark kinds (kind name -> path); the
+    start pose is the first ground truth unless ``start`` gives one. ``stream``: iterate the bag
+    from disk at every pass (True), read it into memory once (False), or decide by its size (None:
+    stream above :data:`STREAM_ABOVE_MESSAGES` messages)."""
     from fgslam.io.bag_reader import BagSource
     from fgslam.io.catalog_csv import MIN_CATALOG_ROCKS, read_catalog_csv
 
@@ -225,10 +243,20 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
     catalog = read_catalog_csv(catalog_csv)
     if len(catalog) < MIN_CATALOG_ROCKS:
         raise InputFileError(f"{catalog_csv}: the catalog holds {len(catalog)} rocks; at least {MIN_CATALOG_ROCKS} are needed")
+    catalogs = {"rocks": catalog}
+    for kind_name, path in (kind_catalogs or {}).items():
+        try:
+            layer = kind_named(kind_name).layer("catalog")
+        except RelocError as exc:  # an unregistered kind, or one without a catalog layer
+            raise InputFileError(f"{path}: cannot read a catalog of kind {kind_name!r}: {exc}") from None
+        if not Path(path).exists():
+            raise InputFileError(f"{path}: {kind_name} catalog not found")
+        catalogs[kind_name] = layer.read(Path(path))
     initial = _initial_from_stream(measurements, str(bag), start or StartSpec())
     return RunInputs(
-        name=name or bag.stem, measurements=measurements, catalog=catalog, initial=initial,
+        name=name or bag.stem, measurements=measurements, catalogs=catalogs, initial=initial,
         source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv), "streamed": bool(stream),
+                **({"kind_catalogs": {k: str(p) for k, p in kind_catalogs.items()}} if kind_catalogs else {}),
                 "report": str(source.report or "")},
     )
 

@@ -16,6 +16,7 @@ import numpy as np
 from fgslam.errors import FgslamError
 from fgslam.nees import NeesTest, nees_test
 from reloc.backend import Trajectory
+from reloc.geometry import wrap_angle, yaw_of
 
 # P(chi2_2 <= x) = 0.9973 (the 3-sigma probability of a 1D Gaussian), for the 2D position ellipse.
 CHI2_2DOF_3SIGMA = 11.829158081900795
@@ -23,16 +24,6 @@ CHI2_2DOF_3SIGMA = 11.829158081900795
 
 class MetricsError(FgslamError):
     """Trajectories that cannot be compared (no overlap, too short, bad shapes)."""
-
-
-def yaw_of(T_world_base: np.ndarray) -> np.ndarray:
-    """Yaw (rad) of (..., 4, 4) poses: atan2(R10, R00)."""
-    return np.arctan2(T_world_base[..., 1, 0], T_world_base[..., 0, 0])
-
-
-def wrap_angle(a: np.ndarray | float) -> np.ndarray:
-    """Wrap radians to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def interpolate_truth(gt: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

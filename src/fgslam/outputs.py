@@ -62,13 +62,14 @@ def write_comparison(out: Path, comparisons: list, config, rrd: bool = True) -> 
     """table.md, results.json, PNG plots per world, compare.rrd and config.yaml of a comparison."""
     import yaml
 
+    from fgslam.compare import resolved_compare_config, resolved_dead_reckoning_config
     from fgslam.report import write_results
     from fgslam.viz.plots import write_plots
-    from reloc.config import config_to_dict
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    files = list(write_results(out, [wc.metrics for wc in comparisons], {"config": config_to_dict(config)}))
+    used = resolved_compare_config(config)  # every back-end's resolved config, not only overrides
+    files = list(write_results(out, [wc.metrics for wc in comparisons], {"config": used}))
     for wc in comparisons:
         files += write_plots(out, wc)
     if rrd:
@@ -76,7 +77,7 @@ def write_comparison(out: Path, comparisons: list, config, rrd: bool = True) -> 
 
         files.append(write_comparison_rrd(out / "compare.rrd", comparisons))
     cfg = out / "config.yaml"
-    cfg.write_text(yaml.safe_dump(_jsonable({"config": config_to_dict(config),
+    cfg.write_text(yaml.safe_dump(_jsonable({"config": used, "dead_reckoning": resolved_dead_reckoning_config(),
                                              "inputs": [wc.inputs.source for wc in comparisons]}), sort_keys=False))
     files.append(cfg)
     return files

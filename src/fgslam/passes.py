@@ -25,8 +25,8 @@ import numpy as np
 
 from fgslam.backends.registry import backend_class, make_backend
 from fgslam.errors import FgslamError
+from fgslam.fix_sources import FedFixes, FixProducer, FixSource, NoFixes, OnlineFixes, ReplayedFixes
 from fgslam.lifetime import kill_pool, worker_initializer
-from fgslam.relocalizer import Relocalizer
 from fgslam.runner import RunnerConfig, RunResult, run_backend
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ class FixFeedError(FgslamError):
 
 
 class QueueFixFeed:
-    """Consumer side of a reference pass's fixes (see :class:`fgslam.runner.FixFeed`). Messages:
+    """Consumer side of a reference pass's fixes (see :class:`fgslam.fix_sources.FixFeed`). Messages:
     ("fix", GlobalFix), ("time", t): every fix with ``t_recv < t`` has been sent, ("done", None),
     ("error", text)."""
 
@@ -93,16 +93,20 @@ class QueueFixFeed:
         return out
 
 
+def _source(state: dict, p: Pass, fixes, fix_feed, fix_sink) -> FixSource:
+    """The pass's fixes: its own relocalizers (online), the reference's list or feed (replay)."""
+    if p.mode == "online":
+        return OnlineFixes(state["relocalizers"], fix_sink)
+    if p.mode == "replay":
+        return FedFixes(fix_feed) if fix_feed is not None else ReplayedFixes(fixes)
+    return NoFixes()
+
+
 def _execute(state: dict, p: Pass, fixes, on_progress, fix_feed=None, fix_sink=None) -> RunResult:
-    inputs, runner_cfg, reloc = state["inputs"], state["runner"], state["relocalizer"]
+    inputs = state["inputs"]
     be = make_backend(p.backend, inputs.initial, p.overrides)
-    return run_backend(
-        be, inputs.measurements,
-        relocalizer=reloc if p.mode == "online" else None,
-        fixes=fixes if p.mode == "replay" and fix_feed is None else None,
-        fix_feed=fix_feed, fix_sink=fix_sink,
-        config=runner_cfg, on_progress=on_progress,
-    )
+    return run_backend(be, inputs.measurements, _source(state, p, fixes, fix_feed, fix_sink),
+                       config=state["runner"], on_progress=on_progress)
 
 
 def _worker(p: Pass, fixes) -> tuple[str, RunResult]:
@@ -127,11 +131,12 @@ def _worker(p: Pass, fixes) -> tuple[str, RunResult]:
 
 
 def run_passes(
-    inputs, passes: list[Pass], runner_cfg: RunnerConfig, relocalizer: Relocalizer,
+    inputs, passes: list[Pass], runner_cfg: RunnerConfig, relocalizers: list[FixProducer],
     fixes_of: Callable[[RunResult], list], workers: int = 1,
     on_progress: Callable[[str, float], None] | None = None,
 ) -> dict[str, RunResult]:
-    """Run ``passes`` (exactly one "online"); replays get ``fixes_of(online result)``."""
+    """Run ``passes`` (exactly one "online", with ``relocalizers``); replays get
+    ``fixes_of(online result)``."""
     online = [p for p in passes if p.mode == "online"]
     if len(online) != 1:
         raise ValueError(f"exactly one online (reference) pass is needed, got {len(online)}")
@@ -139,7 +144,7 @@ def run_passes(
     wave2 = [p for p in passes if p.mode == "replay"]
     for p in passes:  # import every back-end before forking: workers share the parent's code
         backend_class(p.backend)
-    state = {"inputs": inputs, "runner": runner_cfg, "relocalizer": relocalizer}
+    state = {"inputs": inputs, "runner": runner_cfg, "relocalizers": list(relocalizers)}
     if workers <= 1 or "fork" not in mp.get_all_start_methods():
         results: dict[str, RunResult] = {}
         for p in wave1:

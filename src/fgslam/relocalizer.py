@@ -1,5 +1,7 @@
-"""Relocalizer: match the back-end's local landmark map against the orbital catalog and turn the
-matched similarity into a late global pose fix.
+"""The rock kind's relocalizer: match the back-end's local rock map against the orbital rock
+catalog and turn the matched similarity into a late global pose fix. Another kind brings its own
+(``LandmarkKind.relocalizer``, a factory ``(catalog, config)``; see
+:class:`fgslam.fix_sources.FixProducer` for what the runner asks of one).
 
 The constellation matcher returns ``world = s * R(theta) @ local + t`` for the map snapshot taken at
 ``t_meas``. Applied to the back-end's own pose estimate at that instant, it gives the rover's
@@ -18,104 +20,26 @@ the default, so runs are reproducible).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Annotated, Literal
 
 import numpy as np
 
-from fgslam.errors import FgslamError
-from fgslam.metrics import wrap_angle
+from fgslam.match_to_fix import fix_from_similarity, rover_weighted_fit, select_local_map
+from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
-from reloc.config import Ge, Interval, NonNegative, Positive, PositiveInt, checked
-from reloc.errors import ConfigError
+from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix, RockCatalog
 
 log = logging.getLogger(__name__)
 
-
-class RelocalizerError(FgslamError):
-    """Bad relocalizer configuration or input."""
-
-
-@dataclass(frozen=True)
-@checked(RelocalizerError)
-class RelocalizerConfig:
-    """When and how the local map is matched, and how a match becomes a fix (defaults in code)."""
-
-    # one attempt per period of stream time (goal: fixes >= 0.2 Hz; cnes: 0.147 Hz at 3 s, 0.219 at 2 s)
-    period_s: Positive = 2.0
-    min_obs: PositiveInt = 2  # landmarks seen fewer times are not matched (likely false positives)
-    min_landmarks: Annotated[int, Ge(3)] = 8  # skip the attempt below this many usable landmarks
-    max_landmarks: Annotated[int, Ge(3)] = 160  # this many landmarks form the local constellation ...
-    max_radius_m: Positive = 30.0  # ... chosen within this distance of the rover ...
-    # ... "largest" first (the orbital catalog holds mostly the larger rocks: on a dense yard the
-    # nearest 80 are small rocks in a few metres, few of them catalogued) or "nearest" first
-    select: Literal["largest", "nearest"] = "largest"
-    # an attempt is skipped while the rover has moved less than min_travel_m and turned less than
-    # min_turn_deg since the last one (standing still, its map and pose say nothing new: my2021,
-    # 687 -> 554 attempts, the same ATE, 44 -> 48x real time); both 0: never skipped
-    min_travel_m: NonNegative = 0.05
-    min_turn_deg: NonNegative = 3.0
-    latency: Literal["fixed", "measured"] = "fixed"  # "fixed": t_recv = t_meas + delay_s; "measured": + matching wall time
-    delay_s: NonNegative = 2.0
-    latency_scale: Positive = 1.0  # multiplies the measured matching time (slower onboard CPU)
-    sigma_floor_m: NonNegative = 0.05  # per-point residual sigma never below this
-    sigma_yaw_floor_rad: NonNegative = 0.003
-    inflation: Annotated[float, Ge(1)] = 1.75  # multiplies the residual sigma (unmodelled map distortion)
-    map_cov_weight: NonNegative = 0.0  # weight of the landmarks' own planar covariance in sigma^2
-    # The fix describes the rover, so the final fit weighs each matched rock by how well the map
-    # ties it to the rover: w = 1 / (1 + (d / fit_radius_m)^2) at distance d from the rover (a
-    # relative map error that grows with distance and equals the catalog's at fit_radius_m),
-    # covariance from the weighted fit. None: every inlier alike (the matcher's own fit). Seed 0,
-    # iSAM2 + reloc, None -> 10: my2020 0.040 -> 0.034 m, my2021 0.034 -> 0.030, my2022 0.036 ->
-    # 0.032, cnes 0.060 -> 0.057; my2020 seed 2 0.166 m / 62 % inside 3 sigma -> 0.060 m / 96 %
-    # (a map bent on a climb gave fixes biased with it); docs/app.md
-    fit_radius_m: Positive | None = 10.0
-    max_scale_error: Annotated[float, Interval(gt=0, lt=1)] = 0.05  # reject matches whose scale is further than this from 1
-    # Search prior: the map's centroid must land within prior_min_radius_m + prior_sigmas *
-    # sigma_pos (largest std of the estimate's x/y) of where the estimate puts it; None: no prior.
-    # Successive fixes share most inlier rocks, hence most of their catalog error: fusing them as
-    # independent would make a back-end overconfident. correlation "rocks" (default): each fix's
-    # covariance is multiplied by 1 + the mean, over its inlier catalog rocks, of how many earlier
-    # fixes used that rock (sum over earlier fixes of the fraction of rocks shared with them; for
-    # fixes on the same rocks the covariance-intersection bound, whenever they were made).
-    # "window": 1 + number of fixes produced in the preceding correlation_window_s. "none": 1.
-    correlation: Literal["rocks", "window", "none"] = "rocks"
-    correlation_window_s: Positive = 60.0
-    prior_sigmas: Positive | None = 6.0
-    prior_min_radius_m: NonNegative = 3.0
-    # Tracking: with a prior, first verify the pose the estimate gives (the map as it is, in the
-    # estimate's world frame) and search only if that does not convince (reloc.matcher module doc).
-    # Off by default: it saves matching time on dense catalogs (my2020 reference pass: matching
-    # 17.1 -> 9.6 s CPU on the same snapshots) but a fix found from the estimate leans towards it
-    # (my2022, iSAM2 + reloc: fixes' median error 0.023 -> 0.031 m, ATE 0.036 -> 0.042 m; my2020,
-    # my2021, cnes: the same ATE within 2 %)
-    track: bool = False
-    # With a prior, match against the catalog rocks that can hold the map (within prior radius +
-    # the map's extent + crop_margin_m of where the estimate puts it): a small index built per
-    # attempt (a few ms) instead of hypotheses over the whole catalog. False: whole catalog.
-    crop_catalog: bool = True
-    crop_margin_m: NonNegative = 2.0
-    # Crops are cut on a grid: centre snapped to crop_snap_m, radius rounded up to a multiple of
-    # it (plus the snapping error), so successive attempts a few decimetres apart share one crop
-    # and its index, kept in a cache of crop_cache crops. The crop still holds every rock that
-    # can hold the map.
-    crop_snap_m: Positive = 2.0
-    crop_cache: PositiveInt = 8
-    matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
-
-    def __post_init__(self) -> None:
-        if not self.matcher:
-            return
-        from reloc.config import config_from_dict
-        from reloc.matcher import MatcherConfig
-
-        try:  # the matcher's overrides are checked with the config, not at the first attempt
-            config_from_dict(MatcherConfig, self.matcher, where="matcher.")
-        except ConfigError as exc:
-            raise RelocalizerError(f"relocalizer: {exc}") from None
+__all__ = [
+    "FixAttempt", "Relocalizer", "RelocalizerConfig", "RelocalizerError", "fix_from_similarity",
+    "rover_weighted_fit", "select_local_map",
+]
 
 
 @dataclass(frozen=True)
@@ -123,7 +47,8 @@ class FixAttempt:
     """One matching attempt at ``t_meas``: ``status`` is "fix", "no match", "too few landmarks" or
     "bad scale"; ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
     (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time;
-    ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``)."""
+    ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``);
+    ``source``: the relocalizer that made it (its kinds, "+"-joined)."""
 
     t_meas: float
     n_landmarks: int
@@ -134,105 +59,21 @@ class FixAttempt:
     world_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     est_xyyaw: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracked: bool = False
-
-
-def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig) -> np.ndarray:
-    """Indices of the landmarks used for matching: n_obs >= min_obs within ``max_radius_m`` of the
-    rover, at most ``max_landmarks`` of them, the largest (or the nearest, ``cfg.select``) first."""
-    if len(lmap) == 0:
-        return np.zeros(0, dtype=int)
-    ok = np.flatnonzero(lmap.n_obs >= cfg.min_obs)
-    d = np.linalg.norm(lmap.xyz_world_m[ok, :2] - np.asarray(xy_rover)[:2], axis=1)
-    ok, d = ok[d <= cfg.max_radius_m], d[d <= cfg.max_radius_m]
-    if cfg.select == "largest":
-        order = np.lexsort((d, -lmap.size_m[ok]))  # larger first, nearer among equals
-    else:
-        order = np.argsort(d, kind="stable")
-    return np.sort(ok[order[: cfg.max_landmarks]])
-
-
-def fix_from_similarity(
-    est: PoseEstimate,
-    rotation_rad: float,
-    translation: np.ndarray,
-    scale: float,
-    local_inliers_xy: np.ndarray,
-    rmse_m: float,
-    cfg: RelocalizerConfig,
-    t_recv: float,
-    map_var_m2: float = 0.0,
-    similarity_cov: np.ndarray | None = None,
-    cov_scale: float = 1.0,
-) -> GlobalFix:
-    """Rover fix at ``est.t`` from a local->world similarity and its inliers (K, 2) in the local (estimated world) frame.
-
-    With ``similarity_cov`` (4, 4) over (tx_m, ty_m, theta_rad, scale) from the matcher, the fix
-    covariance is its first-order propagation through xy = s R xy_est + t, yaw = yaw_est + theta
-    (times ``inflation``^2, plus the map term); otherwise the inlier-geometry formula of the
-    module doc is used."""
-    L = np.asarray(local_inliers_xy, float).reshape(-1, 2)
-    n = L.shape[0]
-    if n < 3:
-        raise RelocalizerError(f"a fix needs at least 3 inliers, got {n}")
-    c, s = np.cos(rotation_rad), np.sin(rotation_rad)
-    R = np.array([[c, -s], [s, c]])
-    t = np.asarray(translation, float).reshape(2)
-    xy_est = est.position_m[:2]
-    xy = scale * R @ xy_est + t
-    yaw = float(np.arctan2(np.sin(est.yaw_rad + rotation_rad), np.cos(est.yaw_rad + rotation_rad)))
-    dof_corr = n / max(n - 4, 1)  # 4 fitted parameters (similarity) shrink the residuals
-    sigma2 = max(rmse_m**2 * dof_corr + cfg.map_cov_weight * map_var_m2, cfg.sigma_floor_m**2)
-    sigma2 *= cfg.inflation**2
-    centroid = L.mean(axis=0)
-    spread = float(np.sum((L - centroid) ** 2))
-    var_yaw = max(sigma2 / max(spread, 1e-9), cfg.sigma_yaw_floor_rad**2)
-    d_world = R @ (xy_est - centroid)
-    perp = np.array([-d_world[1], d_world[0]])
-    cov = np.zeros((3, 3))
-    if similarity_cov is not None and np.all(np.isfinite(similarity_cov)):
-        J = np.zeros((3, 4))
-        J[:2, :2] = np.eye(2)
-        J[:2, 2] = scale * np.array([[-s, -c], [c, -s]]) @ xy_est
-        J[:2, 3] = R @ xy_est
-        J[2, 2] = 1.0
-        cov = cfg.inflation**2 * (J @ np.asarray(similarity_cov, float) @ J.T)
-        cov[:2, :2] += (cfg.inflation**2 * cfg.map_cov_weight * map_var_m2 / n + cfg.sigma_floor_m**2 / n) * np.eye(2)
-        cov[2, 2] = max(cov[2, 2], cfg.sigma_yaw_floor_rad**2)
-        cov = 0.5 * (cov + cov.T)
-    else:
-        cov[:2, :2] = sigma2 / n * np.eye(2) + var_yaw * np.outer(perp, perp)
-        cov[:2, 2] = cov[2, :2] = var_yaw * perp
-        cov[2, 2] = var_yaw
-    return GlobalFix(
-        t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
-        cov_xyyaw=cov * cov_scale, n_inliers=n, rmse_m=float(rmse_m),
-    )
-
-
-def rover_weighted_fit(
-    local_xy: np.ndarray, world_xy: np.ndarray, rover_xy: np.ndarray, radius_m: float, floor_sigma_m: float
-):
-    """Rigid re-fit of matched pairs (K, 2) weighted by closeness to the rover, ``w = 1 / (1 +
-    (d / radius_m)^2)`` (``RelocalizerConfig.fit_radius_m``): (rotation_rad, translation (2,),
-    scale 1, weighted RMSE m, (4, 4) covariance over (tx, ty, theta, scale), residual sigma
-    floored at ``floor_sigma_m``)."""
-    from reloc.match_result import similarity_covariance
-    from reloc.procrustes import umeyama_2d
-
-    d2 = np.sum((local_xy - np.asarray(rover_xy, float)) ** 2, axis=1)
-    w = 1.0 / (1.0 + d2 / radius_m**2)
-    sim = umeyama_2d(local_xy, world_xy, w, with_scale=False)
-    res = sim.apply(local_xy) - world_xy
-    rmse = float(np.sqrt(np.sum(w * np.sum(res * res, axis=1)) / np.sum(w)))
-    cov = similarity_covariance(sim, local_xy, world_xy, floor_sigma_m=floor_sigma_m, with_scale=False, weights=w)
-    return float(sim.theta_rad), np.asarray(sim.translation, float), 1.0, rmse, cov
+    source: str = ""
 
 
 class Relocalizer:
-    """Matches map snapshots against a catalog (``reloc.ConstellationMatcher`` unless one is given)."""
+    """Matches snapshots of the map of ``kind`` (rocks) against a catalog of that kind
+    (``reloc.ConstellationMatcher`` unless one is given)."""
 
-    def __init__(self, catalog: RockCatalog, config: RelocalizerConfig | None = None, matcher=None) -> None:
+    def __init__(self, catalog: RockCatalog, config: RelocalizerConfig | dict | None = None, matcher=None,
+                 kind: str = "rocks") -> None:
+        if isinstance(config, dict):  # overrides, e.g. from a YAML file
+            from reloc.config import config_from_dict
+
+            config = config_from_dict(RelocalizerConfig, config, where="relocalizer.")
         self.config = config or RelocalizerConfig()
+        self.kinds = (kind,)
         self.catalog = catalog
         if matcher is None:
             from reloc.catalog import Catalog
@@ -256,6 +97,11 @@ class Relocalizer:
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
 
+    @property
+    def period_s(self) -> float:
+        """Stream time between attempts."""
+        return self.config.period_s
+
     def wants(self, est: PoseEstimate) -> bool:
         """Whether an attempt at ``est`` is worth making: the rover has moved ``min_travel_m`` or
         turned ``min_turn_deg`` since the last attempt (always for the first one)."""
@@ -266,8 +112,16 @@ class Relocalizer:
         dyaw = abs(float(wrap_angle(est.yaw_rad - self._last_xyyaw[2])))
         return d >= cfg.min_travel_m or np.degrees(dyaw) >= cfg.min_turn_deg
 
-    def attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:
-        """Try to relocalize the map snapshot taken with pose ``est`` (its ``t`` is ``t_meas``)."""
+    def attempt(self, maps: Mapping[str, LandmarkMap] | LandmarkMap, est: PoseEstimate) -> FixAttempt:
+        """Try to relocalize the map snapshot taken with pose ``est`` (its ``t`` is ``t_meas``);
+        ``maps`` is the snapshot of every kind by name (this one reads its own), or its map."""
+        lmap = maps if isinstance(maps, LandmarkMap) else maps[self.kinds[0]]
+        if lmap.kind != self.kinds[0]:
+            raise RelocalizerError(f"the {self.kinds[0]} relocalizer was given a map of {lmap.kind!r}")
+        att = self._attempt(lmap, est)
+        return att if att.source else dataclasses.replace(att, source=self.kinds[0])
+
+    def _attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:
         cfg = self.config
         est_xyyaw = np.array([est.position_m[0], est.position_m[1], est.yaw_rad])
         self._last_xyyaw = est_xyyaw

@@ -1,8 +1,10 @@
 """The back-end protocol shared by the EKF and the iSAM2 smoother, and the types it exchanges.
 
 The runner, the metrics and the viewer only talk to a back-end through :class:`Backend`, so the
-EKF baseline and the smoother are interchangeable, and a new landmark type (craters) adds a
-measurement and its update without touching the runner.
+EKF baseline and the smoother are interchangeable. Landmark observations of every kind enter
+through one method, :meth:`Backend.observe`; a back-end dispatches them on the kind registry
+(:mod:`reloc.kinds`) to that kind's update, so a new kind (craters) adds its modules and a
+registration, never an edit of the runner or of a back-end's core.
 
 Pose covariance convention (both back-ends): a 6x6 matrix over the error
 ``[dp_world (3, m), dtheta_world (3, rad)]`` where the true pose is
@@ -13,11 +15,13 @@ world-frame position covariance and ``cov[5, 5]`` is (for small roll/pitch) the 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from reloc.measurements import GlobalFix, RockObservations
+from reloc.config import config_to_dict
+from reloc.kinds import LandmarkObservations
+from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep
 
 # Uncertainty of a known start pose (the rover's landing site in the map), the same wherever a
@@ -51,10 +55,11 @@ class PoseEstimate:
 
 @dataclass(frozen=True)
 class LandmarkMap:
-    """The back-end's current local landmark map, in the (estimated) world frame.
+    """The back-end's current local map of one landmark kind, in the (estimated) world frame.
 
     ``ids`` (N,) int, ``xyz_world_m`` (N, 3), ``cov_world_m2`` (N, 3, 3), ``size_m`` (N,) mean
-    estimated diameter, ``n_obs`` (N,) number of associated observations.
+    estimated diameter, ``n_obs`` (N,) number of associated observations, ``kind`` the landmark
+    kind's name (:mod:`reloc.kinds`).
     """
 
     ids: np.ndarray
@@ -62,18 +67,20 @@ class LandmarkMap:
     cov_world_m2: np.ndarray
     size_m: np.ndarray
     n_obs: np.ndarray
+    kind: str
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
 
     @staticmethod
-    def empty() -> LandmarkMap:
+    def empty(kind: str) -> LandmarkMap:
         return LandmarkMap(
             ids=np.zeros(0, dtype=int),
             xyz_world_m=np.zeros((0, 3)),
             cov_world_m2=np.zeros((0, 3, 3)),
             size_m=np.zeros(0),
             n_obs=np.zeros(0, dtype=int),
+            kind=kind,
         )
 
 
@@ -94,7 +101,7 @@ class FixOutcome:
 
 @dataclass(frozen=True)
 class LandmarkUpdateReport:
-    """Outcome of one rock frame: how many detections were associated, initialised, rejected."""
+    """Outcome of one landmark frame: how many detections were associated, initialised, rejected."""
 
     t: float
     n_detections: int
@@ -137,25 +144,41 @@ class Backend(Protocol):
     (``fix.t_meas`` earlier than the last processed input) and must land at ``t_meas``.
 
     Constructors take the initial :class:`PoseEstimate` (the start pose in world is known) and a
-    frozen config dataclass.
+    frozen config dataclass, kept as ``config`` (the resolved config a run saves). Back-ends
+    subclass this protocol, so they inherit the defaults of its optional capabilities
+    (:meth:`expect_fix`).
     """
 
     name: str
+    config: Any
 
     def predict(self, step: OdometryStep) -> None:
         """Propagate with one odometry step (command velocity + IMU orientation increment)."""
 
-    def update_landmarks(self, obs: RockObservations) -> LandmarkUpdateReport:
-        """Associate, update and initialise landmarks from one stereo rock frame at ``obs.t``."""
+    def observe(self, obs: LandmarkObservations) -> LandmarkUpdateReport:
+        """Associate, update and initialise landmarks from one frame of any registered landmark
+        kind at ``obs.t``; an observation of no registered kind is an error (never a fix)."""
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         """Apply a (possibly late) global planar fix at ``fix.t_meas``; gate it, never raise on a bad one."""
 
+    def expect_fix(self, t_meas: float) -> None:
+        """A fix for ``t_meas`` (at or after the newest input) may arrive later. A back-end that
+        rolls back (the EKF) keeps a rollback point there; the default does nothing. Never
+        changes results, only the cost of a late fix."""
+
+    @classmethod
+    def resolved_config(cls, config: Any) -> dict:
+        """``config`` (this back-end's config dataclass) as the plain dict a run saves: every
+        value, defaults included, so that it can be given back as overrides."""
+        return config_to_dict(config)
+
     def estimate(self) -> PoseEstimate:
         """Current (latest) pose with covariance."""
 
-    def landmark_map(self) -> LandmarkMap:
-        """Current local landmark map in the estimated world frame, for constellation matching."""
+    def landmark_map(self, kind: str) -> LandmarkMap:
+        """Current local map of landmark kind ``kind`` in the estimated world frame (empty when
+        none was observed), for constellation matching; an unregistered kind is an error."""
 
     def trajectory(self) -> Trajectory:
         """The back-end's best trajectory so far (filtered for the EKF, smoothed for iSAM2)."""

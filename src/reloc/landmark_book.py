@@ -6,7 +6,8 @@ false detections never reach the map used for matching). When a back-end bounds 
 book chooses what to evict: landmarks not seen for the longest time, then the farthest.
 
 Entries are kept in insertion order, so row ``i`` of the book is row ``i`` of the back-end's
-landmark arrays; every method that removes rows returns or takes a boolean keep mask.
+landmark arrays; every method that removes rows returns or takes a boolean keep mask. A book may
+hold landmarks of several kinds (:mod:`reloc.kinds`): ``kind`` holds each one's kind code.
 """
 
 from __future__ import annotations
@@ -27,8 +28,12 @@ class LandmarkBookConfig:
     confirm_window_s: Positive = 5.0  # ... within this many seconds of the first sighting
 
 
+_COLUMNS = ("ids", "t_first", "t_last", "n_obs", "size_sum_m", "confirmed", "kind")
+
+
 class LandmarkBook:
-    """Per-landmark records (N,): ``ids``, ``t_first``, ``t_last``, ``n_obs``, ``size_sum_m``, ``confirmed``."""
+    """Per-landmark records (N,): ``ids``, ``t_first``, ``t_last``, ``n_obs``, ``size_sum_m``,
+    ``confirmed``, ``kind`` (the kind code, :func:`reloc.kinds.kind_code`)."""
 
     def __init__(self, config: LandmarkBookConfig | None = None) -> None:
         self.config = config or LandmarkBookConfig()
@@ -39,6 +44,7 @@ class LandmarkBook:
         self.n_obs = np.zeros(0, dtype=int)
         self.size_sum_m = np.zeros(0)
         self.confirmed = np.zeros(0, dtype=bool)
+        self.kind = np.zeros(0, dtype=np.int16)
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -47,7 +53,7 @@ class LandmarkBook:
         """An independent copy (for filter checkpoints)."""
         other = LandmarkBook(self.config)
         other.next_id = self.next_id
-        for name in ("ids", "t_first", "t_last", "n_obs", "size_sum_m", "confirmed"):
+        for name in _COLUMNS:
             setattr(other, name, getattr(self, name).copy())
         return other
 
@@ -56,8 +62,9 @@ class LandmarkBook:
         """(N,) mean observed diameter in metres."""
         return self.size_sum_m / np.maximum(self.n_obs, 1)
 
-    def add(self, t: float, size_m: np.ndarray) -> np.ndarray:
-        """Append ``len(size_m)`` tentative landmarks first seen at ``t``; returns their ids (k,)."""
+    def add(self, t: float, size_m: np.ndarray, kind: int = 0) -> np.ndarray:
+        """Append ``len(size_m)`` tentative landmarks of kind code ``kind`` first seen at ``t``;
+        returns their ids (k,)."""
         size_m = np.reshape(np.asarray(size_m, dtype=float), (-1,))
         k = size_m.shape[0]
         new_ids = np.arange(self.next_id, self.next_id + k)
@@ -68,6 +75,7 @@ class LandmarkBook:
         self.n_obs = np.concatenate([self.n_obs, np.ones(k, dtype=int)])
         self.size_sum_m = np.concatenate([self.size_sum_m, size_m])
         self.confirmed = np.concatenate([self.confirmed, np.full(k, self.config.confirm_n_obs <= 1)])
+        self.kind = np.concatenate([self.kind, np.full(k, kind, dtype=np.int16)])
         return new_ids
 
     def observe(self, rows: np.ndarray, t: float, size_m: np.ndarray) -> None:
@@ -100,5 +108,5 @@ class LandmarkBook:
     def keep(self, mask: np.ndarray) -> None:
         """Keep only the rows where ``mask`` (N,) is True."""
         mask = np.asarray(mask, dtype=bool)
-        for name in ("ids", "t_first", "t_last", "n_obs", "size_sum_m", "confirmed"):
+        for name in _COLUMNS:
             setattr(self, name, getattr(self, name)[mask])

@@ -13,15 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices: (3,) -> (3, 3), or (M, 3) -> (M, 3, 3), with ``skew(a) @ b = a x b``."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+from reloc.geometry import skew
 
 
 def point_in_base(R_world_base: np.ndarray, p_world: np.ndarray, l_world: np.ndarray) -> np.ndarray:

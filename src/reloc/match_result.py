@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reloc.geometry import wrap_angle
 from reloc.procrustes import Similarity2D, rotation_2d
 
 __all__ = ["MatchResult", "similarity_covariance"]
@@ -107,7 +108,7 @@ class MatchResult:
     def pose_in_world(self, local_xy: np.ndarray, local_yaw_rad: float = 0.0) -> tuple[np.ndarray, float]:
         """World (x, y) (2,) and yaw of a body at ``local_xy`` (2,) with heading ``local_yaw_rad``."""
         xy = self.apply(np.asarray(local_xy, float).reshape(1, 2))[0]
-        yaw = float(np.arctan2(np.sin(local_yaw_rad + self.rotation_rad), np.cos(local_yaw_rad + self.rotation_rad)))
+        yaw = float(wrap_angle(local_yaw_rad + self.rotation_rad))
         return xy, yaw
 
     def cov_at(self, local_xy: np.ndarray) -> np.ndarray:

@@ -21,6 +21,12 @@ share of the sequential test (``guess_share``); only if it does not convince doe
 search run (with the rest of the share, and paying for the guess's test). A localized rover then
 costs one verification per attempt instead of a search, and a wrong or drifted guess costs one
 verification more than the search alone.
+
+Size: ~600 lines, above the project's ~300, for a reason: the stages already live in their own
+modules (descriptors, hashing, sampling, hypotheses, scoring, procrustes, match_result); what
+stays here is the search itself, whose steps (batches of hypotheses, verification of the best
+bins, the sequential false-alarm test, the guess) share one per-call state (``_Search``), and the
+config whose derived tolerances every step reads.
 """
 
 from __future__ import annotations

@@ -14,6 +14,7 @@ from typing import Union
 
 import numpy as np
 
+from reloc import kinds
 from reloc.errors import MeasurementError
 
 
@@ -148,22 +149,31 @@ class GroundTruthPose:
         object.__setattr__(self, "quat_xyzw", _unit_quat("GroundTruthPose.quat_xyzw", self.quat_xyzw))
 
 
+# A measurement is a motion input, a ground-truth pose, or the observation of a registered
+# landmark kind (reloc.kinds): the union names the built-in ones for type checkers.
 Measurement = Union[CmdVel, ImuSample, WheelOdometry, RockObservations, GroundTruthPose]
 
-# Order of measurements that share a stamp: motion inputs first, so that a rock frame at t is
-# applied to the state predicted to t.
-KIND_ORDER: dict[type, int] = {
+# Order of measurements that share a stamp: motion inputs first, so that a landmark frame at t is
+# applied to the state predicted to t; each landmark kind registers its own rank after these.
+INPUT_RANK: dict[type, int] = {
     CmdVel: 0,
     WheelOdometry: 1,
     ImuSample: 2,
     GroundTruthPose: 3,
-    RockObservations: 4,
 }
 
 
+def sort_rank(m) -> int:
+    """Rank of ``m`` among same-stamp measurements: :data:`INPUT_RANK`, else its kind's rank
+    (:class:`reloc.kinds.UnknownKindError` for a type that is neither)."""
+    rank = INPUT_RANK.get(type(m))
+    return rank if rank is not None else kinds.kind_of(m).rank
+
+
 def sort_key(m: Measurement) -> tuple[float, int]:
-    """Key that orders a stream by time, then by :data:`KIND_ORDER`."""
-    return (m.t, KIND_ORDER[type(m)])
+    """Key that orders a stream by time, then by :func:`sort_rank`."""
+    rank = INPUT_RANK.get(type(m))
+    return (m.t, rank if rank is not None else kinds.kind_of(m).rank)
 
 
 @dataclass(frozen=True, slots=True)

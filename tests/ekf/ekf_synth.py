@@ -10,7 +10,7 @@ import numpy as np
 
 from ekf.config import MotionNoiseConfig
 from ekf.motion import process_noise_body
-from ekf.so3 import exp_so3, log_so3
+from reloc.geometry import exp_so3, log_so3
 from reloc.measurements import GroundTruthPose, RockObservations
 from reloc.odometry import OdometryStep
 

@@ -26,7 +26,7 @@ def run_filter(budget: ObservationBudget, seed: int = 5):
     for k, step in enumerate(run.steps):
         ekf.predict(step)
         if k in run.frames:
-            reports.append(ekf.update_landmarks(run.frames[k]))
+            reports.append(ekf.observe(run.frames[k]))
         if k % 30 == 29:
             e = ekf.estimate()
             samples.append((run.truth_p[k + 1] - e.position_m, 3.0 * np.sqrt(np.diag(e.cov[:3, :3]))))

@@ -11,10 +11,10 @@ from ekf_synth import simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
-from ekf.so3 import exp_so3
 from reloc.backend import PoseEstimate
 from reloc.calibration import CalibrationConfig
 from reloc.errors import ConfigError
+from reloc.geometry import exp_so3
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))
 ROT = np.radians([0.0, 0.0, 1.5])  # a mounting error about base_link z
@@ -36,7 +36,7 @@ def _feed(ekf: EkfSlam, run) -> tuple[EkfSlam, np.ndarray]:
     for k, step in enumerate(run.steps):
         ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
         e = ekf.estimate()
         d = e.position_m[:2] - run.truth_p[k + 1, :2]
         err.append(float(d @ np.linalg.solve(e.cov[:2, :2], d)))

@@ -15,16 +15,10 @@ from ekf_synth import simulate
 from scipy.stats import chi2
 
 from ekf.slam import EkfSlam
+from fgslam.fix_sources import ReplayedFixes
+from fgslam.runner import RunnerConfig, run_backend
 from reloc.backend import PoseEstimate
-from reloc.measurements import (
-    CmdVel,
-    GlobalFix,
-    GroundTruthPose,
-    ImuSample,
-    RockObservations,
-    WheelOdometry,
-)
-from reloc.odometry import OdometryAssembler
+from reloc.measurements import GlobalFix
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
 
@@ -49,7 +43,7 @@ def synth_samples(seed: int, duration_s: float = 30.0):
     for k, step in enumerate(run.steps):
         ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
         if k % 30 == 29:
             e = ekf.estimate()
             out.append((run.truth_p[k + 1] - e.position_m, e.cov[:3, :3]))
@@ -80,25 +74,18 @@ def sim_run(seed: int):
 
 
 def run_on_sim(run, fixes=(), every_s: float = 2.0):
-    """Feed a simulator run (fixes delivered at t_recv); returns the filter, samples, outcomes."""
+    """Run the filter over a simulator run with the runner (fixes delivered at t_recv); the online
+    estimate every ``every_s`` against ground truth at the same stamp. Returns the filter, the
+    samples (error (3,), covariance (3, 3)) and the fix outcomes."""
     ekf = EkfSlam(run.initial_pose)
-    odo = OdometryAssembler()
-    pending = sorted(fixes, key=lambda f: f.t_recv)
-    samples, outcomes, next_sample = [], [], run.initial_pose.t + every_s
-    for m in run.measurements:
-        if isinstance(m, (CmdVel, ImuSample, WheelOdometry)):
-            step = odo.push(m)
-            if step is not None:
-                ekf.predict(step)
-        elif isinstance(m, RockObservations):
-            ekf.update_landmarks(m)
-        elif isinstance(m, GroundTruthPose) and m.t >= next_sample and abs(ekf.estimate().t - m.t) < 1e-9:
-            e = ekf.estimate()
-            samples.append((m.position_m - e.position_m, e.cov[:3, :3]))
-            next_sample += every_s
-        while pending and pending[0].t_recv <= m.t:
-            outcomes.append(ekf.apply_fix(pending.pop(0)))
-    return ekf, samples, outcomes
+    res = run_backend(ekf, run.measurements, ReplayedFixes(fixes), config=RunnerConfig(record_rate_hz=1.0 / every_s))
+    gt, on = res.ground_truth, res.online
+    k = np.searchsorted(gt.t, on.t)
+    same = (k < len(gt.t)) & (np.abs(gt.t[np.minimum(k, len(gt.t) - 1)] - on.t) < 1e-9)
+    same &= on.t >= run.initial_pose.t + every_s  # not the start pose itself
+    samples = [(gt.positions_m[j] - T[:3, 3], C[:3, :3])
+               for j, T, C in zip(k[same], on.T_world_base[same], on.cov[same])]
+    return ekf, samples, res.outcomes
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,9 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig, FixGateConfig
 from ekf.errors import EkfInputError
 from ekf.slam import EkfSlam
-from ekf.so3 import yaw_of
 from reloc.backend import Backend, PoseEstimate
 from reloc.errors import MeasurementError
+from reloc.geometry import yaw_of
 from reloc.measurements import GlobalFix, RockObservations
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))
@@ -29,7 +29,7 @@ def fed(run, upto=None, config=None):
     for k, step in enumerate(run.steps[:upto]):
         ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
     return ekf
 
 
@@ -76,7 +76,7 @@ def test_out_of_order_inputs_rejected_state_untouched(run):
         ekf.predict(run.steps[50])
     frame_k = max(k for k in run.frames if k < 100)
     with pytest.raises(EkfInputError, match="out of order"):
-        ekf.update_landmarks(run.frames[frame_k])
+        ekf.observe(run.frames[frame_k])
     assert_untouched(ekf, snap)
 
 
@@ -90,7 +90,7 @@ def test_nan_observation_rejected(run):
     object.__setattr__(bad, "t", good.t)
     bad.xyz_base_m[0, 1] = np.nan
     with pytest.raises(EkfInputError, match="NaN"):
-        ekf.update_landmarks(bad)
+        ekf.observe(bad)
     assert_untouched(ekf, snap)
 
 
@@ -148,7 +148,7 @@ def test_map_hygiene_and_bound(run):
     st = ekf.stats()
     assert ekf.state_vector_size <= 6 + 3 * 10
     assert st.extra["n_evicted"] > 0
-    m = ekf.landmark_map()
+    m = ekf.landmark_map("rocks")
     assert len(m) <= 10 and np.all(m.n_obs >= cfg.book.confirm_n_obs)
     assert np.all(np.linalg.eigvalsh(m.cov_world_m2) > 0)
     # every confirmed landmark sits near a true rock

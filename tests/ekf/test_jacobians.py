@@ -8,8 +8,8 @@ import pytest
 
 from ekf.config import MotionNoiseConfig
 from ekf.motion import propagate, split_step
-from ekf.so3 import exp_so3, log_so3, wrap_angle
 from ekf.updates import E_Z, attitude_model, fix_model, gravity_basis
+from reloc.geometry import exp_so3, log_so3, wrap_angle
 from reloc.landmark_model import init_jacobians, point_in_base, point_jacobians, point_to_world
 from reloc.odometry import OdometryStep
 

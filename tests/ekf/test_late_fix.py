@@ -11,8 +11,8 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig
 from ekf.motion import split_step
 from ekf.slam import EkfSlam
-from ekf.so3 import yaw_of
 from reloc.backend import PoseEstimate
+from reloc.geometry import yaw_of
 from reloc.measurements import GlobalFix
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]))
@@ -45,7 +45,7 @@ def feed(ekf, run, fixes_at=None, split_at=None):
         else:
             ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
         if split_at is None or k != split_at[0]:
             outcomes += [ekf.apply_fix(f) for f in fixes_at.get(k, [])]
     return outcomes
@@ -56,7 +56,7 @@ def assert_same(a: EkfSlam, b: EkfSlam, tol=1e-9):
     assert ea.t == eb.t
     assert np.allclose(ea.T_world_base, eb.T_world_base, atol=tol, rtol=0)
     assert np.allclose(a.full_covariance(), b.full_covariance(), atol=tol, rtol=0)
-    ma, mb = a.landmark_map(), b.landmark_map()
+    ma, mb = a.landmark_map("rocks"), b.landmark_map("rocks")
     assert np.array_equal(ma.ids, mb.ids)
     assert np.allclose(ma.xyz_world_m, mb.xyz_world_m, atol=tol, rtol=0)
     ta, tb = a.trajectory(), b.trajectory()
@@ -150,7 +150,7 @@ def _feed_truth_fixes(ekf, run, every: int, delay_steps: int):
     for k, step in enumerate(run.steps):
         ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
         if k % every == 0 and k > 0:
             pending.append((k + delay_steps, make_fix(run, k + 1, offset_m=(0.0, 0.0))))
         while pending and pending[0][0] <= k:
@@ -185,7 +185,7 @@ def test_inconsistent_rejected_fixes_do_not_reopen_the_filter(run):
     for k, step in enumerate(run.steps):
         ekf.predict(step)
         if k in run.frames:
-            ekf.update_landmarks(run.frames[k])
+            ekf.observe(run.frames[k])
         if k % 30 == 0 and k > 0:
             sign = 1.0 if (k // 30) % 2 else -1.0
             outcomes.append(ekf.apply_fix(make_fix(run, k + 1, offset_m=(sign * 1.5, 0.0))))
@@ -203,7 +203,7 @@ def test_expected_fix_replays_from_its_own_time_with_the_same_result(run):
             hinted.expect_fix(fix.t_meas)
         hinted.predict(step)
         if j in run.frames:
-            hinted.update_landmarks(run.frames[j])
+            hinted.observe(run.frames[j])
     hinted.expect_fix(fix.t_meas - 1.0)  # a time already passed: ignored
     out_plain, out_hinted = plain.apply_fix(fix), hinted.apply_fix(fix)
     assert out_plain.accepted and out_hinted.accepted

@@ -25,14 +25,14 @@ def frame(t: float, xyz: list[list[float]], sigma_m: float = 0.01) -> RockObserv
 def run(skip: bool) -> tuple[EkfSlam, np.ndarray, np.ndarray]:
     ekf = EkfSlam(START, dataclasses.replace(EkfConfig(), skip_lone_ambiguous_pair=skip))
     rocks = [[3.0, 0.0, 0.0], [4.0, 2.0, 0.0], [5.0, -2.0, 0.0]]
-    ekf.update_landmarks(frame(0.5, rocks))
+    ekf.observe(frame(0.5, rocks))
     for k in range(10):  # drive 1 m forward: the pose becomes uncertain on its own
         t0 = 0.5 + 0.25 * k
         ekf.predict(OdometryStep(t0, t0 + 0.25, 0.4, 0.0, np.eye(3), np.eye(3), np.zeros(3)))
     before = ekf.estimate()
     # two detections next to the first rock (now 2 m ahead): one is assigned, the other gates to
     # the same rock and is neither assigned nor new (ambiguous); the other rocks are not seen
-    ekf.update_landmarks(frame(3.0, [[2.06, 0.0, 0.0], [1.97, 0.01, 0.0]]))
+    ekf.observe(frame(3.0, [[2.06, 0.0, 0.0], [1.97, 0.01, 0.0]]))
     return ekf, before.position_m, ekf.estimate().position_m
 
 

@@ -21,7 +21,7 @@ def _feed(ekf: EkfSlam, run, cov_factor: float = 1.0) -> EkfSlam:
         ekf.predict(step)
         if k in run.frames:
             obs = run.frames[k]
-            ekf.update_landmarks(dataclasses.replace(obs, cov_base_m2=obs.cov_base_m2 * cov_factor))
+            ekf.observe(dataclasses.replace(obs, cov_base_m2=obs.cov_base_m2 * cov_factor))
     return ekf
 
 

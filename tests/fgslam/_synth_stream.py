@@ -67,7 +67,7 @@ def make_stream(seed: int = 0, duration_s: float = 60.0, speed_mps: float = 0.25
                           np.full(int(keep.sum()), 0.5))
     gt0 = next(m for m in meas if isinstance(m, GroundTruthPose))
     img = (rng.uniform(0, 1, (64, 64, 3)) * 255).astype(np.uint8)
-    return RunInputs(name=f"synth{seed}", measurements=meas, catalog=catalog, initial=start_pose_from_truth(gt0),
+    return RunInputs(name=f"synth{seed}", measurements=meas, catalogs={"rocks": catalog}, initial=start_pose_from_truth(gt0),
                      orbital_image=img, orbital_extent=(-field_m / 2, field_m / 2, -field_m / 2, field_m / 2),
                      rocks_true_xy=rocks, source={"kind": "synthetic", "seed": seed})
 

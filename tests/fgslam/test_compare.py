@@ -22,7 +22,7 @@ def _compare(workers: int):
     cfg = CompareConfig(backends=("dr",), reference_backend="dr", backend_overrides={"dr": {"use_fixes": True}},
                         workers=workers)
     reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
-    return cfg, compare_world(inputs, cfg, relocalizer=reloc)
+    return cfg, compare_world(inputs, cfg, relocalizers=[reloc])
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +142,9 @@ def test_cli_sim_run_compare_end_to_end(tmp_path):
     from fgslam.backends.registry import backend_config
 
     assert backend_config("isam2", back.backend_overrides.get("isam2")) == backend_config("isam2", used["backend_config"])
-    assert load_config(cmp_out / "config.yaml") == CompareConfig()
+    from fgslam.compare import resolved_compare_config
+
+    assert resolved_compare_config(load_config(cmp_out / "config.yaml")) == resolved_compare_config(CompareConfig())
     world = yaml.safe_load((sim_dir / "world.yaml").read_text())
     assert config_to_dict(load_sim_config(None, None, None, sim_dir / "world.yaml")) == world["config"]
     for d in (sim_dir, out, cmp_out):

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from fgslam.errors import BagError
 from fgslam.io import BagReaderConfig, read_bag
 from fgslam.io.synthetic import SyntheticStreamConfig, synthetic_stream
+from reloc.bag_spec import TopicNames, typestore
 from reloc.measurements import (
     CmdVel,
     GroundTruthPose,
@@ -24,7 +25,6 @@ from reloc.measurements import (
     sort_key,
 )
 from sim.bag_writer import write_bag
-from sim.rosmsgs import TopicNames, typestore
 
 
 @pytest.fixture(scope="module")

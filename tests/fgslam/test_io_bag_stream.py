@@ -45,7 +45,7 @@ def _imu_bag(tmp_path, stamps_ns: list[int], log_ns: list[int]):
     one command and one empty rock frame so that it is a valid fgslam bag."""
     from rosbags.rosbag2 import Writer
 
-    from sim.rosmsgs import typestore
+    from reloc.bag_spec import typestore
     from test_io_bag import _header, _imu, _twist
 
     ts = typestore()

@@ -16,7 +16,7 @@ def comparison():
     inputs = make_stream(seed=5, duration_s=40.0)
     cfg = CompareConfig(backends=("dr",), reference_backend="dr", backend_overrides={"dr": {"use_fixes": True}}, workers=1)
     reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
-    return compare_world(inputs, cfg, relocalizer=reloc)
+    return compare_world(inputs, cfg, relocalizers=[reloc])
 
 
 def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
@@ -29,19 +29,20 @@ def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
     paths = {c.entity_path for c in chunks}
     w = "/" + comparison.inputs.name
     for key in ("dr", "dr_reloc"):
-        for ent in (rerun_log.ENT_PATH, rerun_log.ENT_POSE, rerun_log.ENT_POSE_COV, rerun_log.ENT_LANDMARKS):
+        for ent in (rerun_log.ENT_PATH, rerun_log.ENT_POSE, rerun_log.ENT_POSE_COV, f"{rerun_log.ENT_LANDMARKS}/rocks"):
             assert f"{w}/{key}/{ent}" in paths
         assert f"{w}/{rerun_log.ENT_ERR_POS}/{key}" in paths
         assert f"{w}/{rerun_log.ENT_ERR_POS}/{key}_3sigma" in paths
         assert f"{w}/{rerun_log.ENT_ERR_YAW}/{key}" in paths
-    for ent in (rerun_log.ENT_ORBITAL, rerun_log.ENT_CATALOG, rerun_log.ENT_TRUTH, rerun_log.ENT_TRUTH_POSE, rerun_log.ENT_MATCHES):
+    for ent in (rerun_log.ENT_ORBITAL, f"{rerun_log.ENT_CATALOG}/rocks", rerun_log.ENT_TRUTH, rerun_log.ENT_TRUTH_POSE,
+                rerun_log.ENT_MATCHES):
         assert f"{w}/{ent}" in paths
     assert f"{w}/dr_reloc/{rerun_log.ENT_FIXES}" in paths  # fix events of the run that received fixes
     # static map, time-varying estimate on the sim_time timeline
     by_path = {}
     for c in chunks:
         by_path.setdefault(c.entity_path, []).append(c)
-    assert all(c.is_static for c in by_path[f"{w}/{rerun_log.ENT_CATALOG}"])
+    assert all(c.is_static for c in by_path[f"{w}/{rerun_log.ENT_CATALOG}/rocks"])
     pose_chunks = by_path[f"{w}/dr_reloc/{rerun_log.ENT_POSE}"]
     assert all(rerun_log.TIMELINE in c.timeline_names for c in pose_chunks)
     assert sum(c.num_rows for c in pose_chunks) == len(comparison.runs["dr_reloc"].online)
@@ -67,7 +68,7 @@ def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
 
 def test_ellipses_are_three_sigma_and_rotated():
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]]])
-    half, q = rerun_log._ellipses(cov)
+    half, q = rerun_log.ellipses(cov)
     assert np.allclose(np.sort(half[0, :2]), [3.0, 6.0])
     assert np.allclose(np.sort(half[1, :2]), [3.0, 9.0])
     assert np.allclose(np.linalg.norm(q, axis=1), 1.0)

@@ -8,6 +8,7 @@ from _synth_stream import NearestNeighbourMatcher, make_stream
 
 from fgslam import metrics as M
 from fgslam.backends import DeadReckoning, DeadReckoningConfig, make_backend
+from fgslam.fix_sources import FedFixes, OnlineFixes, ReplayedFixes
 from fgslam.inputs import truth_of
 from fgslam.relocalizer import (
     Relocalizer,
@@ -42,7 +43,7 @@ def test_dead_reckoning_is_a_backend_and_drifts(stream):
     assert 0.2 < ate.max < 3.0
     assert len(res.online) == pytest.approx(res.duration_s * 10, abs=2)  # 10 Hz records
     assert res.online.cov.shape == (len(res.online), 6, 6)
-    assert len(res.landmarks) > 30 and res.attempts == [] and res.outcomes == []
+    assert len(res.landmarks["rocks"]) > 30 and res.attempts == [] and res.outcomes == []
 
 
 def test_fix_from_similarity_undoes_a_known_map_error():
@@ -77,7 +78,7 @@ def test_relocalizer_config_is_validated():
 
 def test_select_local_map_keeps_seen_landmarks_near_the_rover():
     xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [50, 0, 0]], float)
-    lm = LandmarkMap(np.arange(4), xyz, np.tile(np.eye(3), (4, 1, 1)), np.ones(4), np.array([3, 1, 5, 9]))
+    lm = LandmarkMap(np.arange(4), xyz, np.tile(np.eye(3), (4, 1, 1)), np.ones(4), np.array([3, 1, 5, 9]), "rocks")
     idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=2, max_radius_m=20.0))
     assert list(idx) == [0, 2]
     idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=1, max_landmarks=3))
@@ -89,7 +90,7 @@ def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):
     cfg = RelocalizerConfig(period_s=4.0, delay_s=1.5)
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     be = make_backend("dr", stream.initial, {"use_fixes": True})
-    res = run_backend(be, stream.measurements, relocalizer=reloc)
+    res = run_backend(be, stream.measurements, OnlineFixes([reloc]))
     base = run_backend(make_backend("dr", stream.initial), stream.measurements)
     fixes = [a.fix for a in res.attempts if a.fix is not None]
     assert len(res.attempts) == pytest.approx(res.duration_s / 4.0, abs=1)
@@ -106,11 +107,18 @@ def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):
 def test_replaying_the_fix_list_reproduces_the_online_run(stream):
     cfg = RelocalizerConfig(period_s=4.0, delay_s=1.0)
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
-    online = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, relocalizer=reloc)
+    online = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, OnlineFixes([reloc]))
     fixes = [a.fix for a in online.attempts if a.fix is not None]
-    replay = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, fixes=fixes)
+    replay = run_backend(make_backend("dr", stream.initial, {"use_fixes": True}), stream.measurements, ReplayedFixes(fixes))
     assert [o.fix for o in replay.outcomes] == [o.fix for o in online.outcomes]
     assert np.allclose(replay.final.T_world_base, online.final.T_world_base)
+
+
+class _Odd:
+    """A stamped object that is no measurement of any registered kind."""
+
+    def __init__(self, t):
+        self.t = t
 
 
 def test_runner_rejects_bad_streams(stream):
@@ -119,8 +127,8 @@ def test_runner_rejects_bad_streams(stream):
     imu_free = [m for m in stream.measurements[:200] if type(m).__name__ != "ImuSample"]
     with pytest.raises(RunnerError, match="IMU"):
         run_backend(DeadReckoning(stream.initial), imu_free)
-    with pytest.raises(RunnerError, match="one of a relocalizer"):
-        run_backend(DeadReckoning(stream.initial), stream.measurements, relocalizer=object(), fixes=[])
+    with pytest.raises(RunnerError, match="cannot consume _Odd at t=0.5: _Odd is not the observation of any registered"):
+        run_backend(DeadReckoning(stream.initial), [*stream.measurements[:10], _Odd(0.5)])
 
 
 def test_dead_reckoning_config_overrides_are_checked(stream):
@@ -134,7 +142,7 @@ def test_dead_reckoning_config_overrides_are_checked(stream):
 def _map_and_pose(stream):
     be = make_backend("dr", stream.initial)
     run_backend(be, stream.measurements[: len(stream.measurements) // 2])
-    return be.landmark_map(), be.estimate()
+    return be.landmark_map("rocks"), be.estimate()
 
 
 def test_successive_fixes_are_deweighted_for_their_shared_error(stream):
@@ -193,7 +201,7 @@ def test_nearby_attempts_share_one_catalog_crop_and_its_fix(stream):
 def test_select_local_map_prefers_the_largest_rocks_within_the_radius():
     xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [8, 0, 0], [50, 0, 0]], float)
     size = np.array([0.1, 0.5, 0.1, 0.4, 1.0])
-    lm = LandmarkMap(np.arange(5), xyz, np.tile(np.eye(3), (5, 1, 1)), size, np.full(5, 3))
+    lm = LandmarkMap(np.arange(5), xyz, np.tile(np.eye(3), (5, 1, 1)), size, np.full(5, 3), "rocks")
     rover = np.array([0.0, 0.0])
     assert list(select_local_map(lm, rover, RelocalizerConfig(max_landmarks=3, max_radius_m=20.0))) == [0, 1, 3]
     near = RelocalizerConfig(max_landmarks=3, max_radius_m=20.0, select="nearest")
@@ -226,7 +234,7 @@ def test_cropped_catalog_gives_the_whole_catalog_fix(stream):
     and its matched pairs index the full catalog."""
     be = make_backend("dr", stream.initial)
     run_backend(be, stream.measurements[: len(stream.measurements) // 2])
-    lmap, est = be.landmark_map(), be.estimate()
+    lmap, est = be.landmark_map("rocks"), be.estimate()
     out = {}
     for crop in (True, False):
         reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5, crop_catalog=crop))
@@ -250,12 +258,12 @@ def test_attempts_wait_until_the_rover_has_moved_or_turned(stream):
     nn = NearestNeighbourMatcher(stream.catalog.xy_m)
     reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_travel_m=0.05, min_turn_deg=3.0), matcher=nn)
     assert reloc.wants(_pose(0.0, 0.0, 0.0))  # the first attempt always
-    reloc.attempt(LandmarkMap.empty(), _pose(0.0, 0.0, 0.0))
+    reloc.attempt(LandmarkMap.empty("rocks"), _pose(0.0, 0.0, 0.0))
     assert not reloc.wants(_pose(0.03, 0.0, 0.02))  # standing (almost) still
     assert reloc.wants(_pose(0.04, 0.04, 0.0))  # moved 5.7 cm
     assert reloc.wants(_pose(0.0, 0.0, np.radians(4.0)))  # turned 4 deg on the spot
     never = Relocalizer(stream.catalog, RelocalizerConfig(min_travel_m=0.0, min_turn_deg=0.0), matcher=nn)
-    never.attempt(LandmarkMap.empty(), _pose(0.0, 0.0, 0.0))
+    never.attempt(LandmarkMap.empty("rocks"), _pose(0.0, 0.0, 0.0))
     assert never.wants(_pose(0.0, 0.0, 0.0))
 
 
@@ -274,7 +282,7 @@ class _Recorder:
 
     def update_landmarks(self, obs):
         self.t_in = obs.t
-        return self.inner.update_landmarks(obs)
+        return self.inner.observe(obs)
 
     def expect_fix(self, t_meas):
         self.calls.append((t_meas, self.t_in))
@@ -308,8 +316,8 @@ def test_a_rolling_back_backend_hears_of_each_fix_before_the_stream_passes_it(st
     runs = {}
     for mode in ("list", "feed"):
         be = _Recorder(make_backend("ekf", stream.initial))
-        kw = {"fixes": fixes} if mode == "list" else {"fix_feed": _ListFeed(fixes)}
-        res = run_backend(be, stream.measurements, **kw)
+        source = ReplayedFixes(fixes) if mode == "list" else FedFixes(_ListFeed(fixes))
+        res = run_backend(be, stream.measurements, source)
         assert [c[0] for c in be.calls] == [f.t_meas for f in fixes]
         assert all(t_in <= t_meas for t_meas, t_in in be.calls)  # told before any later input
         assert all(o.accepted for o in res.outcomes)
@@ -326,7 +334,7 @@ def test_tracking_verifies_the_estimate_and_searches_when_it_is_off(stream):
 
     be = make_backend("dr", stream.initial)
     run_backend(be, stream.measurements[: len(stream.measurements) // 2])
-    lmap, est = be.landmark_map(), be.estimate()
+    lmap, est = be.landmark_map("rocks"), be.estimate()
     cfg = RelocalizerConfig(min_landmarks=5)
     out = {tr: Relocalizer(stream.catalog, dataclasses.replace(cfg, track=tr)).attempt(lmap, est) for tr in (True, False)}
     assert out[True].status == out[False].status == "fix"
@@ -336,7 +344,7 @@ def test_tracking_verifies_the_estimate_and_searches_when_it_is_off(stream):
     yaw = np.radians(8.0)
     R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
     off = np.array([1.5, 0.0, 0.0])
-    moved = LandmarkMap(lmap.ids, lmap.xyz_world_m @ R.T + off, lmap.cov_world_m2, lmap.size_m, lmap.n_obs)
+    moved = LandmarkMap(lmap.ids, lmap.xyz_world_m @ R.T + off, lmap.cov_world_m2, lmap.size_m, lmap.n_obs, "rocks")
     T = est.T_world_base.copy()
     T[:3, :3], T[:3, 3] = R @ T[:3, :3], R @ T[:3, 3] + off
     drifted = PoseEstimate(est.t, T, np.eye(6) * 1.0)

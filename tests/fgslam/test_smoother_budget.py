@@ -32,7 +32,7 @@ def _run(budget: ObservationBudget):
     run = simulate_synthetic(SyntheticConfig(seed=3, duration_s=60.0, rock_density_per_m2=0.6))
     sm = Isam2Smoother(run.initial_pose, SmootherConfig(landmarks=LandmarkConfig(budget=budget, dense_view=0)))
     frames: list[FrameAssociation] = []
-    _spy(sm.landmarks, frames)
+    _spy(sm.kinds.get("rocks").store, frames)
     out = drive(sm, run.measurements)
     return run, sm, frames, out
 
@@ -50,7 +50,7 @@ def test_dense_frame_adds_at_most_the_budget(runs):
     extra = sm.stats().extra
     assert extra["n_budget_skipped"] > 0 and extra["n_budget_new_skipped"] > 0
     assert sm_all.stats().extra["n_budget_skipped"] == 0
-    assert sm.landmarks.n_budget_skipped == extra["n_budget_skipped"]
+    assert sm.kinds.get("rocks").store.n_budget_skipped == extra["n_budget_skipped"]
 
 
 def test_budgeted_estimate_stays_within_its_bounds(runs):

@@ -39,7 +39,7 @@ def _all_estimates(sm: Isam2Smoother) -> dict[int, np.ndarray]:
     out = {}
     for i in range(len(sm.kfs)):
         out[X(i)] = sm.solver.pose(X(i))
-    for rec in sm.landmarks.mapped():
+    for rec in sm.kinds.get("rocks").store.mapped():
         out[L(rec.lid)] = sm.solver.point(L(rec.lid))
     return out
 
@@ -55,7 +55,7 @@ def test_incremental_estimate_equals_batch_levenberg_marquardt(short_run):
     fixes = [f for f, _ in synthetic_fixes(short_run, np.random.default_rng(1), period_s=9.0, delay_s=(1, 10))]
     sm = Isam2Smoother(short_run.initial_pose, cfg)
     drive(sm, short_run.measurements, fixes)
-    assert sm.stats().n_fixes_accepted >= 3 and len(sm.landmarks.mapped()) > 10
+    assert sm.stats().n_fixes_accepted >= 3 and len(sm.kinds.get("rocks").store.mapped()) > 10
     sm.solver.extra_iterations(5)
     graph = gtsam.NonlinearFactorGraph()
     factors = sm.solver.factors()
@@ -280,9 +280,9 @@ def test_rock_cov_scale_equals_feeding_scaled_covariances():
 def test_calibration_variable_recovers_a_yaw_and_scale_error():
     import dataclasses
 
-    from ekf.so3 import exp_so3
     from fgslam.errors import SmootherError
     from reloc.calibration import CalibrationConfig
+    from reloc.geometry import exp_so3
     from reloc.measurements import RockObservations
 
     run = simulate_synthetic(SyntheticConfig(seed=4, duration_s=90.0))

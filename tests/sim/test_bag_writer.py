@@ -9,6 +9,7 @@ import pytest
 
 from fgslam.io import read_bag
 from fgslam.io.synthetic import SyntheticStreamConfig, synthetic_stream
+from reloc.bag_spec import BagEncoding, TopicNames
 from reloc.measurements import (
     CmdVel,
     GroundTruthPose,
@@ -17,7 +18,6 @@ from reloc.measurements import (
     WheelOdometry,
 )
 from sim.bag_writer import BagWriteError, stamp_ns, write_bag
-from sim.rosmsgs import BagEncoding, TopicNames
 
 TOPIC_OF = {
     CmdVel: "/cmd_vel",

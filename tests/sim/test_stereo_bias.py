@@ -65,7 +65,7 @@ def test_negative_settings_are_rejected_by_name():
 
 
 def test_calibration_error_in_base_link_is_what_the_back_ends_estimate():
-    from ekf.so3 import exp_so3
+    from reloc.geometry import exp_so3
     from sim.sensors.stereo import StereoCamera, calibration_error_base
 
     cfg = StereoConfig(extrinsic_sigma_deg=0.3, depth_scale_sigma=0.01)

@@ -1,10 +1,11 @@
 """Dead reckoning as a :class:`reloc.backend.Backend`: the odometry-only curve of the plots.
 
 Position integrates the commanded speed along the IMU attitude; the covariance grows with a
-simple speed-proportional model (same convention as reloc.backend). Rock frames are turned into a
-world-frame landmark map by nearest-neighbour association, so the relocalizer can be exercised
+simple speed-proportional model (same convention as reloc.backend). Landmark frames of every
+registered kind are turned into one world-frame map per kind by nearest-neighbour association of
+their points (:class:`reloc.kinds.LandmarkObservations`), so a relocalizer can be exercised
 without a SLAM back-end. Fixes are ignored unless ``use_fixes``; when used, the planar correction
-that moves the pose at ``t_meas`` onto the fix is applied to the current pose and the map.
+that moves the pose at ``t_meas`` onto the fix is applied to the current pose and the maps.
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fgslam.errors import FgslamError
 from reloc.backend import (
+    Backend,
     BackendStats,
     FixOutcome,
     LandmarkMap,
@@ -23,7 +26,9 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.config import NonNegative, Positive, checked
-from reloc.measurements import GlobalFix, RockObservations
+from reloc.geometry import skew
+from reloc.kinds import UnknownKindError, kind_named, kind_of
+from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep
 
 
@@ -36,16 +41,29 @@ class DeadReckoningConfig:
     sigma_lateral_frac: NonNegative = 0.01  # 1-sigma lateral drift per metre travelled
     sigma_yaw_rate_radps: NonNegative = 0.002  # 1-sigma random-walk density of heading, rad/sqrt(s)
     sigma_z_frac: NonNegative = 0.02
-    association_gate_m: Positive = 0.6  # nearest landmark within this distance is the same rock
+    association_gate_m: Positive = 0.6  # nearest landmark within this distance is the same one
     use_fixes: bool = False
-    build_map: bool = True  # False: ignore rock frames (the odometry-only curve needs no map)
+    build_map: bool = True  # False: ignore landmark frames (the odometry-only curve needs no map)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+FUTURE_TOLERANCE_S = 0.1  # a fix up to this far ahead of the odometry is applied now
 
 
-class DeadReckoning:
+class DeadReckoningError(FgslamError):
+    """The dead-reckoning back-end was given an observation of no registered landmark kind."""
+
+
+class _PointMap:
+    """One kind's world-frame map: positions (N, 3), covariances (N, 3, 3), sizes, counts."""
+
+    def __init__(self) -> None:
+        self.xyz = np.zeros((0, 3))
+        self.cov = np.zeros((0, 3, 3))
+        self.size = np.zeros(0)
+        self.n = np.zeros(0, dtype=int)
+
+
+class DeadReckoning(Backend):
     """Odometry-only back-end (see module doc); ``name`` is "dr"."""
 
     name = "dr"
@@ -58,21 +76,21 @@ class DeadReckoning:
         self._hist_t: list[float] = [self._t]
         self._hist_T: list[np.ndarray] = [self._T.copy()]
         self._hist_P: list[np.ndarray] = [self._P.copy()]
-        self._lm_xyz = np.zeros((0, 3))
-        self._lm_cov = np.zeros((0, 3, 3))
-        self._lm_size = np.zeros(0)
-        self._lm_n = np.zeros(0, dtype=int)
+        self._maps: dict[str, _PointMap] = {}
         self._stats = {"n_predict": 0, "n_landmark_frames": 0, "n_fixes_accepted": 0, "n_fixes_rejected": 0}
 
     def predict(self, step: OdometryStep) -> None:
-        """Integrate one odometry step: attitude by the IMU increment, position by v*dt along x."""
+        """Integrate one odometry step: attitude by the IMU increment, position by v*dt along x. A
+        step ending at or before the current time (e.g. before the start pose) is ignored."""
+        if step.t1 <= self._t:
+            return
         c = self.config
         R0 = self._T[:3, :3]
         R1 = R0 @ step.dR_base
         ds = step.v_mps * step.dt
         dp = 0.5 * (R0 + R1) @ np.array([ds, 0.0, 0.0])
         F = np.eye(6)
-        F[:3, 3:] = -_skew(dp)
+        F[:3, 3:] = -skew(dp)
         Q_body = np.diag([(c.sigma_speed_frac * ds) ** 2, (c.sigma_lateral_frac * abs(ds)) ** 2, (c.sigma_z_frac * abs(ds)) ** 2])
         Q = np.zeros((6, 6))
         Q[:3, :3] = R1 @ Q_body @ R1.T
@@ -87,36 +105,42 @@ class DeadReckoning:
         self._hist_P.append(self._P.copy())
         self._stats["n_predict"] += 1
 
-    def update_landmarks(self, obs: RockObservations) -> LandmarkUpdateReport:
-        """Add the frame's rocks to the world map at the dead-reckoned pose (no pose correction)."""
+    def observe(self, obs) -> LandmarkUpdateReport:
+        """Add the frame's landmarks to their kind's world map at the dead-reckoned pose (no pose
+        correction)."""
+        try:
+            kind = kind_of(obs)
+        except UnknownKindError as exc:
+            raise DeadReckoningError(f"dead reckoning cannot observe {type(obs).__name__}: {exc}") from None
         self._stats["n_landmark_frames"] += 1
         n = len(obs)
         if n == 0 or not self.config.build_map:
             return LandmarkUpdateReport(obs.t, 0, 0, 0, 0)
+        lm = self._maps.setdefault(kind.name, _PointMap())
         R, p = self._T[:3, :3], self._T[:3, 3]
         xyz_w = obs.xyz_base_m @ R.T + p
         cov_w = R @ obs.cov_base_m2 @ R.T
         n_assoc = n_new = 0
         for k in range(n):
-            if len(self._lm_xyz):
-                d = np.linalg.norm(self._lm_xyz[:, :2] - xyz_w[k, :2], axis=1)
+            if len(lm.xyz):
+                d = np.linalg.norm(lm.xyz[:, :2] - xyz_w[k, :2], axis=1)
                 j = int(np.argmin(d))
                 if d[j] < self.config.association_gate_m:
                     # information-weighted fusion of the new sighting into landmark j
-                    Pj_inv = np.linalg.inv(self._lm_cov[j])
+                    Pj_inv = np.linalg.inv(lm.cov[j])
                     Pk_inv = np.linalg.inv(cov_w[k])
                     P_new = np.linalg.inv(Pj_inv + Pk_inv)
-                    self._lm_xyz[j] = P_new @ (Pj_inv @ self._lm_xyz[j] + Pk_inv @ xyz_w[k])
-                    self._lm_cov[j] = 0.5 * (P_new + P_new.T)
-                    m = self._lm_n[j]
-                    self._lm_size[j] = (m * self._lm_size[j] + obs.size_m[k]) / (m + 1)
-                    self._lm_n[j] += 1
+                    lm.xyz[j] = P_new @ (Pj_inv @ lm.xyz[j] + Pk_inv @ xyz_w[k])
+                    lm.cov[j] = 0.5 * (P_new + P_new.T)
+                    m = lm.n[j]
+                    lm.size[j] = (m * lm.size[j] + obs.size_m[k]) / (m + 1)
+                    lm.n[j] += 1
                     n_assoc += 1
                     continue
-            self._lm_xyz = np.vstack([self._lm_xyz, xyz_w[k]])
-            self._lm_cov = np.concatenate([self._lm_cov, cov_w[k][None]])
-            self._lm_size = np.append(self._lm_size, obs.size_m[k])
-            self._lm_n = np.append(self._lm_n, 1)
+            lm.xyz = np.vstack([lm.xyz, xyz_w[k]])
+            lm.cov = np.concatenate([lm.cov, cov_w[k][None]])
+            lm.size = np.append(lm.size, obs.size_m[k])
+            lm.n = np.append(lm.n, 1)
             n_new += 1
         return LandmarkUpdateReport(obs.t, n, n_assoc, n_new, 0)
 
@@ -132,6 +156,10 @@ class DeadReckoning:
         if fix.t_meas < self._hist_t[0]:
             self._stats["n_fixes_rejected"] += 1
             return FixOutcome(fix, accepted=False, reason="older than history")
+        if fix.t_meas > self._t + FUTURE_TOLERANCE_S:
+            self._stats["n_fixes_rejected"] += 1
+            return FixOutcome(fix, accepted=False,
+                              reason=f"ahead of the odometry (t_meas {fix.t_meas:.3f} s > {self._t:.3f} s)")
         _, T_old = self._pose_at(fix.t_meas)
         yaw_old = float(np.arctan2(T_old[1, 0], T_old[0, 0]))
         dyaw = fix.yaw_rad - yaw_old
@@ -140,8 +168,9 @@ class DeadReckoning:
         t2 = np.array([fix.x_m, fix.y_m, 0.0]) - R2 @ np.array([T_old[0, 3], T_old[1, 3], 0.0])
         self._T[:3, :3] = R2 @ self._T[:3, :3]
         self._T[:2, 3] = (R2 @ self._T[:3, 3] + t2)[:2]
-        if len(self._lm_xyz):
-            self._lm_xyz[:, :2] = (self._lm_xyz @ R2.T + t2)[:, :2]
+        for lm in self._maps.values():
+            if len(lm.xyz):
+                lm.xyz[:, :2] = (lm.xyz @ R2.T + t2)[:, :2]
         idx = [0, 1, 5]
         for a in range(3):
             for b in range(3):
@@ -156,14 +185,22 @@ class DeadReckoning:
         """Latest dead-reckoned pose with its covariance."""
         return PoseEstimate(self._t, self._T.copy(), self._P.copy())
 
-    def landmark_map(self) -> LandmarkMap:
-        """Map built at the dead-reckoned poses, in the world frame."""
+    def landmark_map(self, kind: str) -> LandmarkMap:
+        """The map of ``kind`` built at the dead-reckoned poses, in the world frame."""
+        try:
+            kind_named(kind)
+        except UnknownKindError as exc:
+            raise DeadReckoningError(str(exc)) from None
+        lm = self._maps.get(kind)
+        if lm is None:
+            return LandmarkMap.empty(kind)
         return LandmarkMap(
-            ids=np.arange(len(self._lm_xyz)),
-            xyz_world_m=self._lm_xyz.copy(),
-            cov_world_m2=self._lm_cov.copy(),
-            size_m=self._lm_size.copy(),
-            n_obs=self._lm_n.copy(),
+            ids=np.arange(len(lm.xyz)),
+            xyz_world_m=lm.xyz.copy(),
+            cov_world_m2=lm.cov.copy(),
+            size_m=lm.size.copy(),
+            n_obs=lm.n.copy(),
+            kind=kind,
         )
 
     def trajectory(self) -> Trajectory:
@@ -171,4 +208,4 @@ class DeadReckoning:
         return Trajectory(np.array(self._hist_t), np.array(self._hist_T), np.array(self._hist_P))
 
     def stats(self) -> BackendStats:
-        return BackendStats(n_landmarks=len(self._lm_xyz), **self._stats)
+        return BackendStats(n_landmarks=sum(len(lm.xyz) for lm in self._maps.values()), **self._stats)

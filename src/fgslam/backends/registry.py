@@ -90,9 +90,19 @@ def make_backend(name: str, initial: PoseEstimate, overrides: dict | None = None
 
 
 def backend_config_dict(backend: Backend) -> dict:
-    """The resolved config of a constructed back-end, as a plain dict (empty when unknown)."""
-    from reloc.config import config_to_dict
+    """The resolved config of a constructed back-end, as a plain dict (every value, defaults
+    included; each landmark kind's settings resolved too)."""
+    return type(backend).resolved_config(backend.config)
 
-    cfg = getattr(backend, "config", None)
-    return config_to_dict(cfg) if dataclasses.is_dataclass(cfg) else {}
+
+def resolved_config(name: str, overrides: dict | None = None) -> dict:
+    """The config back-end ``name`` would run with under ``overrides``, resolved (see
+    :func:`backend_config_dict`), without constructing it."""
+    cls = backend_class(name)
+    cfg_cls = _config_class(cls)
+    if cfg_cls is None:
+        if overrides:
+            raise BackendUnavailableError(f"back-end {name!r} takes no config overrides, got {sorted(overrides)}")
+        return {}
+    return cls.resolved_config(config_from_dict(cfg_cls, overrides, where=f"{name}."))
 

@@ -16,12 +16,12 @@ import numpy as np
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
-from ekf.so3 import exp_so3, yaw_of
 from reloc.association import AssociationConfig
 from reloc.backend import PoseEstimate
+from reloc.geometry import exp_so3, yaw_of
 from reloc.landmark_book import LandmarkBookConfig
-from reloc.measurements import CmdVel, GlobalFix, ImuSample, RockObservations, WheelOdometry
-from reloc.odometry import OdometryAssembler, OdometryStep
+from reloc.measurements import GlobalFix, ImuSample, RockObservations
+from reloc.odometry import OdometryStep
 
 COST_CURVE_N = (0, 25, 50, 100, 200, 300, 500)
 
@@ -58,7 +58,7 @@ def cost_point(n: int, seed: int = 0, n_predict: int = 300, n_frames: int = 15, 
     cov = np.tile(np.diag([0.03, 0.03, 0.03]) ** 2, (n, 1, 1))
     t = 0.0
     if n:
-        ekf.update_landmarks(RockObservations(t, L, cov, np.full(n, 0.4), np.full(n, 0.9)))
+        ekf.observe(RockObservations(t, L, cov, np.full(n, 0.4), np.full(n, 0.9)))
     R = np.eye(3)
     dt = 1.0 / 30.0
     pred = []
@@ -74,7 +74,7 @@ def cost_point(n: int, seed: int = 0, n_predict: int = 300, n_frames: int = 15, 
         z = L[idx] - ekf.estimate().position_m + rng.normal(0, 0.02, (idx.size, 3))
         obs = RockObservations(t, z, cov[idx], np.full(idx.size, 0.4), np.full(idx.size, 0.9))
         t0 = time.process_time()
-        ekf.update_landmarks(obs)
+        ekf.observe(obs)
         frames.append(time.process_time() - t0)
         st = _step(t, dt, 0.0, R, np.zeros(3))
         ekf.predict(st)
@@ -110,39 +110,15 @@ def synthetic_fixes(gt, t_start: float, period_s: float, latency_s: float, sigma
     return fixes
 
 
-def feed_inputs(measurements) -> list:
-    """OdometrySteps and RockObservations in processing order (command speed, IMU rotation)."""
-    odo = OdometryAssembler()
-    items = []
-    for m in measurements:
-        if isinstance(m, (CmdVel, ImuSample, WheelOdometry)):
-            st = odo.push(m)
-            if st is not None:
-                items.append(st)
-        elif isinstance(m, RockObservations):
-            items.append(m)
-    return items
+def run_ekf(initial: PoseEstimate, measurements, config: EkfConfig, fixes: list[GlobalFix] = ()):
+    """Run the EKF over ``measurements`` with the runner, each fix delivered at its ``t_recv``;
+    returns the filter and the :class:`fgslam.runner.RunResult` (EKF wall and CPU time in
+    ``backend_s`` / ``backend_cpu_s``, the fix outcomes in ``outcomes``)."""
+    from fgslam.fix_sources import ReplayedFixes
+    from fgslam.runner import run_backend
 
-
-def run_ekf(initial: PoseEstimate, items: list, config: EkfConfig, fixes: list[GlobalFix] = ()) -> tuple[EkfSlam, float, float, list]:
-    """Feed ``items`` (from :func:`feed_inputs`) and deliver each fix once its ``t_recv`` is reached;
-    returns the filter, the EKF wall time and CPU time of this process (s), and the fix outcomes."""
     ekf = EkfSlam(initial, config)
-    pending = sorted(fixes, key=lambda f: f.t_recv)
-    outcomes = []
-    j = 0
-    t0, c0 = time.perf_counter(), time.process_time()
-    for it in items:
-        if isinstance(it, RockObservations):
-            ekf.update_landmarks(it)
-            t_now = it.t
-        else:
-            ekf.predict(it)
-            t_now = it.t1
-        while j < len(pending) and pending[j].t_recv <= t_now:
-            outcomes.append(ekf.apply_fix(pending[j]))
-            j += 1
-    return ekf, time.perf_counter() - t0, time.process_time() - c0, outcomes
+    return ekf, run_backend(ekf, measurements, ReplayedFixes(fixes), time_cpu=True)
 
 
 def traverse_benchmark(world: str = "my2021", seed: int = 1, duration_s: float = 1000.0, distance_m: float = 66.0,
@@ -156,7 +132,6 @@ def traverse_benchmark(world: str = "my2021", seed: int = 1, duration_s: float =
     t0 = time.perf_counter()
     run = simulate(SimConfig(world=world, seed=seed, traverse=TraverseConfig(distance_m=distance_m, duration_s=duration_s)))
     sim_s = time.perf_counter() - t0
-    items = feed_inputs(run.measurements)
     cfg = EkfConfig(max_landmarks=max_landmarks)
     n_imu = sum(isinstance(m, ImuSample) for m in run.measurements)
     n_frames = sum(isinstance(m, RockObservations) for m in run.measurements)
@@ -165,7 +140,8 @@ def traverse_benchmark(world: str = "my2021", seed: int = 1, duration_s: float =
            "distance_m": float(run.stats["distance_m"]), "n_imu": n_imu, "n_rock_frames": n_frames,
            "imu_rate_hz": n_imu / sim_duration, "max_landmarks": max_landmarks,
            "config": dataclasses.asdict(cfg)}
-    ekf, wall, cpu, _ = run_ekf(run.initial_pose, items, cfg)
+    ekf, res = run_ekf(run.initial_pose, run.measurements, cfg)
+    wall, cpu = res.backend_s, res.backend_cpu_s
     st = ekf.stats()
     out["no_fixes"] = {"ekf_wall_s": wall, "real_time_factor": sim_duration / wall,
                        "ekf_cpu_s": cpu, "real_time_factor_cpu": sim_duration / cpu,
@@ -174,7 +150,8 @@ def traverse_benchmark(world: str = "my2021", seed: int = 1, duration_s: float =
                        "stats": {k: v for k, v in st.extra.items() if isinstance(v, (int, float))}}
     fixes = synthetic_fixes(run.ground_truth, float(run.ground_truth.t[0]), fix_period_s, fix_latency_s,
                             fix_sigma_xy_m, np.radians(fix_sigma_yaw_deg), seed)
-    ekf_f, wall_f, cpu_f, outcomes = run_ekf(run.initial_pose, items, cfg, fixes)
+    ekf_f, res_f = run_ekf(run.initial_pose, run.measurements, cfg, fixes)
+    wall_f, cpu_f, outcomes = res_f.backend_s, res_f.backend_cpu_s, res_f.outcomes
     out["with_synthetic_fixes"] = {
         "fix_source": "SYNTHETIC: ground truth + N(0, sigma) noise, delivered late",
         "fix_period_s": fix_period_s, "fix_latency_s": fix_latency_s,

@@ -111,7 +111,7 @@ def run_task(task: dict) -> dict:
         t_sim = time.perf_counter()
         inputs = RunInputs(
             name=os.path.basename(str(task["world"]).rstrip("/")) or str(task["world"]),
-            measurements=list(run.measurements), catalog=run.catalog, initial=run.initial_pose,
+            measurements=list(run.measurements), catalogs={"rocks": run.catalog}, initial=run.initial_pose,
             source={"kind": "simulator", "world": str(task["world"]), "seed": int(task["seed"])},
         )
         with _COMPARE_LOCK:

@@ -22,7 +22,7 @@ def compare_and_write(inputs_list: list, od, cfg, console, rrd: bool = True) -> 
     comparisons = []
     for inputs in inputs_list:
         console.print(f"[bold]{inputs.name}[/bold]: {stream_size(inputs)}, "
-                      f"{len(inputs.catalog)} catalog rocks")
+                      + ", ".join(f"{len(c)} catalog {k}" for k, c in inputs.catalogs.items()))
         runner = check_stream(inputs, cfg.runner)
         run_cfg = cfg if runner == cfg.runner else dataclasses.replace(cfg, runner=runner)
         with stream_progress(inputs, console) as progress:

@@ -85,11 +85,11 @@ def run_cmd(
 
     from fgslam.backends.registry import backend_config_dict, make_backend
     from fgslam.cli.progress import stream_progress
-    from fgslam.compare import run_key, run_metrics
+    from fgslam.compare import relocalizer_set, run_key, run_metrics
+    from fgslam.fix_sources import NoFixes, OnlineFixes
     from fgslam.inputs import check_stream, truth_of
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
-    from fgslam.relocalizer import Relocalizer
     from fgslam.runner import run_backend
     from reloc.config import config_to_dict
 
@@ -104,16 +104,17 @@ def run_cmd(
         runner_cfg = check_stream(inputs, cfg.runner)
         gt = truth_of(inputs)
         be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))
-        reloc = None if no_reloc else Relocalizer(inputs.catalog, cfg.relocalizer)
+        relocs = [] if no_reloc else relocalizer_set(inputs, cfg)
+        fixes = OnlineFixes(relocs) if relocs else NoFixes()
         key = run_key(backend, not no_reloc)
         with stream_progress(inputs, console) as progress:
-            res = run_backend(be, inputs.measurements, relocalizer=reloc, config=runner_cfg,
-                              on_progress=progress.callback(key))
+            res = run_backend(be, inputs.measurements, fixes, config=runner_cfg, on_progress=progress.callback(key))
         met = run_metrics(res, gt, res.attempts, cfg.rpe_delta_m)
         used = {
             "backend": backend, "relocalization": not no_reloc, "inputs": inputs.source,
             "runner": config_to_dict(runner_cfg), "relocalizer": config_to_dict(cfg.relocalizer),
             "backend_config": backend_config_dict(be),
+            "kind_relocalizers": {"+".join(r.kinds): config_to_dict(r.config) for r in relocs if r.kinds != ("rocks",)},
         }
         write_run_outputs(od.staging, res, gt, met, used)
         if rrd is not None:  # in --out: part of the directory; elsewhere: its own atomic file

@@ -14,7 +14,7 @@ from fgslam.io.tum import read_tum, write_tum
 if TYPE_CHECKING:
     from fgslam.io.bag_decode import BagReaderConfig
     from fgslam.io.bag_reader import BagReport, BagStream, TopicReport, read_bag
-    from sim.rosmsgs import TopicNames
+    from reloc.bag_spec import TopicNames
 
 _LAZY = {
     "read_bag": "fgslam.io.bag_reader",
@@ -22,7 +22,7 @@ _LAZY = {
     "BagReport": "fgslam.io.bag_reader",
     "TopicReport": "fgslam.io.bag_reader",
     "BagReaderConfig": "fgslam.io.bag_decode",
-    "TopicNames": "sim.rosmsgs",
+    "TopicNames": "reloc.bag_spec",
 }
 
 __all__ = [

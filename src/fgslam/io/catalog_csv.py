@@ -10,6 +10,8 @@ from __future__ import annotations
 import csv
 import logging
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -121,3 +123,15 @@ def write_catalog_csv(path: str | Path, catalog: RockCatalog) -> None:
                 w.writerow((repr(float(x)), repr(float(y)), repr(float(d)), repr(float(s))))
     except OSError as exc:
         raise InputFileError(f"cannot write catalog {path}: {exc.strerror or exc}") from exc
+
+
+@dataclass(frozen=True)
+class CatalogFile:
+    """A landmark kind's catalog layer: its file name in a ``fgslam sim`` directory and its reader
+    (``path -> catalog``)."""
+
+    file_name: str
+    read: Callable[[Path], object]
+
+
+ROCK_CATALOG_FILE = CatalogFile("catalog.csv", read_catalog_csv)  # the rock kind's catalog layer

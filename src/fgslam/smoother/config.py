@@ -138,6 +138,9 @@ class SmootherConfig:
     # stereo calibration variable C(0) (rotation error, scale) with this prior, on every rock
     # factor (then a Python factor, ~25 us per linearization instead of the C++ one); full mode only
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    # settings of the other landmark kinds' smoother layers, by kind name (each layer declares its
+    # config class; the rock settings are ``landmarks``), see fgslam.smoother.kinds
+    kinds: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.calibration.enabled and self.fixed_lag_s > 0:

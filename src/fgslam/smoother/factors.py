@@ -10,15 +10,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-
-def skew(w: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap an angle (rad) to (-pi, pi]."""
-    return float(np.arctan2(np.sin(a), np.cos(a)))
+from reloc.geometry import skew, wrap_angle
 
 
 def _swap(R: np.ndarray) -> np.ndarray:
@@ -68,7 +60,7 @@ def se2_residual(T_world_base: np.ndarray, xyyaw: np.ndarray) -> tuple[np.ndarra
     R, p = T_world_base[:3, :3], T_world_base[:3, 3]
     a = R[:, 0]
     n2 = a[0] ** 2 + a[1] ** 2
-    r = np.array([p[0] - xyyaw[0], p[1] - xyyaw[1], wrap_angle(np.arctan2(a[1], a[0]) - xyyaw[2])])
+    r = np.array([p[0] - xyyaw[0], p[1] - xyyaw[1], wrap_angle(float(np.arctan2(a[1], a[0]) - xyyaw[2]))])
     H = np.zeros((3, 6))
     H[:2, 3:] = R[:2, :]  # dp = R dv
     M = -R @ skew(np.array([1.0, 0.0, 0.0]))  # da = R [omega]x e1 = -R [e1]x omega

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fgslam.smoother.factors import fix_covariance, fix_residual, make_fix_factor
+from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix
 
 
@@ -68,6 +69,6 @@ def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarra
     target = np.array([r.fix.xyyaw for r in recs])
     a = T[:, :3, 0]  # base_link x axis in the world: yaw is its heading on the xy plane
     dyaw = np.arctan2(a[:, 1], a[:, 0]) - target[:, 2]
-    r = np.column_stack([T[:, 0, 3] - target[:, 0], T[:, 1, 3] - target[:, 1], np.arctan2(np.sin(dyaw), np.cos(dyaw))])
+    r = np.column_stack([T[:, 0, 3] - target[:, 0], T[:, 1, 3] - target[:, 1], wrap_angle(dyaw)])
     w = np.linalg.solve(np.array([rec.cov for rec in recs]), r[:, :, None])[:, :, 0]
     return np.einsum("ij,ij->i", r, w)

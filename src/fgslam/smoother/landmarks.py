@@ -19,6 +19,7 @@ import numpy as np
 from fgslam.smoother.config import LandmarkConfig
 from reloc.association import associate
 from reloc.budget import innovation_trace, select_observations
+from reloc.geometry import skew
 from reloc.landmark_model import point_in_base, point_to_world
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
@@ -131,7 +132,7 @@ class LandmarkStore:
             S_hat = R.T @ C_l @ R
             # pose part in the body frame: dz = [zhat]x domega - dv
             H = np.zeros((len(cands), 3, 6))
-            H[:, :, :3] = _skew_batch(zhat)
+            H[:, :, :3] = skew(zhat)
             H[:, :, 3:] = -np.eye(3)
             S_hat = S_hat + H @ cov_rel_pose @ np.swapaxes(H, 1, 2)
             sizes = np.array([r.size_sum_m / max(r.n_obs, 1) for r in cands])
@@ -265,10 +266,3 @@ class LandmarkStore:
         """Landmarks of the map (in the graph, or retired from it), in id order."""
         return [r for r in self.records.values() if r.status != CANDIDATE]
 
-
-def _skew_batch(v: np.ndarray) -> np.ndarray:
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out

@@ -13,7 +13,7 @@ import gtsam
 import numpy as np
 
 from fgslam.smoother.config import OdometryNoiseConfig
-from fgslam.smoother.factors import skew
+from reloc.geometry import skew
 from reloc.odometry import OdometryStep, pitch_rad
 
 

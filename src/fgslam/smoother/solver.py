@@ -6,6 +6,8 @@ inputs are validated first (finite values, every key known); risky updates (fixe
 can be preceded by :meth:`Solver.snapshot` (a copy of the ISAM2, full mode); and any failure is
 recovered by rebuilding the solver from its own factor graph and linearization point without the
 failed batch (and switching Cholesky -> QR when the failure was an indeterminant system).
+Variables are read by their key symbol's type (:func:`fgslam.smoother.kinds.variable_type`:
+poses, the calibration, and each landmark kind's own); a key of no known symbol is an error.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import numpy as np
 from fgslam.errors import SmootherError
 from fgslam.smoother.config import Factorization, SmootherConfig
 from fgslam.smoother.covariance import tree_marginals
+from fgslam.smoother.kinds import CALIB_SYMBOL, POSE_SYMBOL, symbol_of, variable_type
+from reloc.kinds import kinds_with
 
 log = logging.getLogger(__name__)
 
@@ -32,11 +36,13 @@ def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Par
         # fixed-lag: landmarks leave the window linearized where they are, so they relinearize
         # like poses (with the scale the fixed-lag ATE rose 25 %, at no speed gain)
         p.setRelinearizeThreshold(cfg.relinearize_threshold)
-    else:  # full mode, per variable type: poses X (6,), landmarks L (3,)
+    else:  # full mode, per variable type: poses X (6,), every kind's landmarks, the calibration C (4,)
         th = gtsam.ISAM2ThresholdMap()
-        th.insert(("x", np.full(6, cfg.relinearize_threshold)))
-        th.insert(("l", np.full(3, cfg.relinearize_threshold * cfg.landmark_relinearize_scale)))
-        th.insert(("c", np.full(4, cfg.relinearize_threshold)))  # the stereo calibration, if any
+        th.insert((POSE_SYMBOL, np.full(6, cfg.relinearize_threshold)))
+        for kind in kinds_with("smoother"):
+            dim = kind.layer("smoother").variable.dim
+            th.insert((kind.symbol, np.full(dim, cfg.relinearize_threshold * cfg.landmark_relinearize_scale)))
+        th.insert((CALIB_SYMBOL, np.full(4, cfg.relinearize_threshold)))  # the stereo calibration, if any
         p.setRelinearizeThreshold(th)
     p.relinearizeSkip = cfg.relinearize_skip
     p.setFactorization("QR" if factorization is Factorization.QR else "CHOLESKY")
@@ -46,16 +52,13 @@ def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Par
 
 
 def _value(values: gtsam.Values, key: int):
-    """The value of ``key``: Pose3 (X), Vector (C, the calibration) or Point3 (L)."""
-    c = gtsam.Symbol(key).chr()
-    if c == ord("x"):
-        return values.atPose3(key)
-    return values.atVector(key) if c == ord("c") else values.atPoint3(key)
+    """The value of ``key`` as its symbol's variable type reads it."""
+    return variable_type(symbol_of(key)).value(values, key)
 
 
 def _value_finite(values: gtsam.Values, key: int) -> bool:
-    v = _value(values, key)
-    return bool(np.all(np.isfinite(v.matrix() if isinstance(v, gtsam.Pose3) else v)))
+    vt = variable_type(symbol_of(key))
+    return bool(np.all(np.isfinite(vt.as_array(vt.value(values, key)))))
 
 
 class Solver:
@@ -92,6 +95,11 @@ class Solver:
         """Current estimate of Point3 ``key`` (3,)."""
         s = self.ifls if self.fixed_lag else self.isam
         return np.asarray(s.calculateEstimatePoint3(key), dtype=float)
+
+    def estimate(self, key: int) -> np.ndarray:
+        """Current estimate of any variable ``key``, as an array (its symbol's variable type)."""
+        vt = variable_type(symbol_of(key))
+        return vt.as_array(vt.estimate(self.ifls if self.fixed_lag else self.isam, key))
 
     def marginal_cov(self, key: int) -> np.ndarray:
         """Marginal covariance of ``key`` (GTSAM tangent, body frame for poses)."""
@@ -261,4 +269,4 @@ class Solver:
 
 
 def _tangent_dim(key: int) -> int:
-    return {ord("x"): 6, ord("c"): 4}.get(gtsam.Symbol(key).chr(), 3)
+    return variable_type(symbol_of(key)).dim

@@ -205,52 +205,17 @@ class DriveResult:
 
 
 def drive(backend, measurements: list, fixes: list[GlobalFix] = (), sample_hz: float = 1.0,
-          progress=None, progress_every: int = 500) -> DriveResult:
-    """Feed a sorted measurement stream to a back-end, delivering each fix once the stream reaches
-    its ``t_recv``; sample the causal estimate at ``sample_hz``; call ``progress(t)`` every
-    ``progress_every`` measurements."""
-    import time
+          progress=None) -> DriveResult:
+    """Run a back-end over a sorted measurement stream with the runner (:func:`fgslam.runner.run_backend`),
+    each fix delivered when the stream reaches its ``t_recv``; the causal estimate recorded at
+    ``sample_hz``; ``progress(t)`` called as the runner reports progress."""
+    from fgslam.fix_sources import ReplayedFixes
+    from fgslam.runner import RunnerConfig, run_backend
 
-    from reloc.odometry import OdometryAssembler
-
-    asm = OdometryAssembler()
-    pending = sorted(fixes, key=lambda f: f.t_recv)
-    fi = 0
-    outcomes, ts, Ts, Cs = [], [], [], []
-    next_sample = 0.0
-    clock, cpu = time.perf_counter, time.process_time
-    t0 = clock()
-    busy = busy_cpu = 0.0
-    for n_done, m in enumerate(measurements):
-        if progress is not None and n_done % progress_every == 0:
-            progress(m.t)
-        while fi < len(pending) and pending[fi].t_recv <= m.t:
-            c, cc = clock(), cpu()
-            outcomes.append(backend.apply_fix(pending[fi]))
-            busy += clock() - c
-            busy_cpu += cpu() - cc
-            fi += 1
-        if isinstance(m, RockObservations):
-            c, cc = clock(), cpu()
-            backend.update_landmarks(m)
-            busy += clock() - c
-            busy_cpu += cpu() - cc
-        elif isinstance(m, GroundTruthPose):
-            if m.t >= next_sample:
-                e = backend.estimate()
-                ts.append(e.t)
-                Ts.append(e.T_world_base)
-                Cs.append(e.cov)
-                next_sample = m.t + 1.0 / sample_hz
-        else:
-            step = asm.push(m)
-            if step is not None:
-                c, cc = clock(), cpu()
-                backend.predict(step)
-                busy += clock() - c
-                busy_cpu += cpu() - cc
-    wall = clock() - t0
-    return DriveResult(outcomes, np.array(ts), np.array(Ts), np.array(Cs), wall, busy, busy_cpu)
+    res = run_backend(backend, measurements, ReplayedFixes(fixes), config=RunnerConfig(record_rate_hz=sample_hz),
+                      on_progress=progress, time_cpu=True)
+    on = res.online
+    return DriveResult(res.outcomes, on.t, on.T_world_base, on.cov, res.wall_s, res.backend_s, res.backend_cpu_s)
 
 
 def ate_m(run: SyntheticRun, t: np.ndarray, T: np.ndarray) -> float:

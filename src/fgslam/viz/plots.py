@@ -31,7 +31,9 @@ def _background(ax, wc) -> None:
     inp = wc.inputs
     if inp.orbital_image is not None and inp.orbital_extent is not None:
         ax.imshow(inp.orbital_image, extent=inp.orbital_extent, origin="upper", cmap="gray", alpha=0.8)
-    ax.scatter(inp.catalog.xy_m[:, 0], inp.catalog.xy_m[:, 1], s=4, c="#e0c080", marker=".", label="catalog", zorder=2)
+    for i, (kind, cat) in enumerate(inp.catalogs.items()):  # every landmark kind's catalog
+        ax.scatter(cat.xy_m[:, 0], cat.xy_m[:, 1], s=4, c="#e0c080" if i == 0 else f"C{i + 4}", marker=".",
+                   label=f"{kind} catalog", zorder=2)
 
 
 def plot_xy(path: Path, wc) -> Path:

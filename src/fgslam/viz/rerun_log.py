@@ -4,15 +4,18 @@ Everything is drawn as a flat map in 3D views (x/y world metres, z = a layer hei
 orbital image can be a textured quad under the catalog, the truth and the estimates. Per world
 ``W`` and variant key ``K`` ("ekf", "ekf_reloc", "isam2", "isam2_reloc"):
 
-- ``/W/map/orbital``, ``/W/map/catalog``, ``/W/map/truth`` (static), ``/W/map/truth_pose`` (timeline);
+- ``/W/map/orbital``, ``/W/map/catalog/KIND`` (each landmark kind's catalog), ``/W/map/truth``
+  (static), ``/W/map/truth_pose`` (timeline);
 - ``/W/K/path`` (final trajectory, static), ``/W/K/pose`` and ``/W/K/pose_cov`` (online estimate and
-  its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks`` (final map with 3-sigma ellipses, static),
+  its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks/KIND`` (each kind's final map, static),
   ``/W/K/fixes`` (fix events at t_recv, green accepted / red rejected);
 - ``/W/matches`` (matched local->catalog rock pairs at t_meas);
 - ``/W/errors/position/K`` and ``.../K_3sigma``, ``/W/errors/yaw/K`` and ``.../K_3sigma`` (scalars).
 
-Time is stream seconds on the ``sim_time`` timeline. No server is started: recordings go to a
-file (``RecordingStream.save``).
+Catalogs and maps are drawn by their kind's rerun layer (:mod:`reloc.kinds`; the default,
+:class:`fgslam.viz.landmarks.PointLandmarkLogger`, draws discs and 3-sigma ellipses). Time is
+stream seconds on the ``sim_time`` timeline. No server is started: recordings go to a file
+(``RecordingStream.save``).
 """
 
 from __future__ import annotations
@@ -47,12 +50,21 @@ def _color(key: str) -> tuple[int, int, int]:
     return COLORS.get(key, COLORS.get(key.split("_")[0], (200, 200, 200)))
 
 
+def landmark_logger(kind: str):
+    """The rerun layer of landmark kind ``kind`` (the point default when it registers none)."""
+    from fgslam.viz.landmarks import PointLandmarkLogger
+    from reloc.kinds import kind_named
+
+    k = kind_named(kind)
+    return (k.layer("rerun") if k.has("rerun") else PointLandmarkLogger)(kind)
+
+
 def _downsample(img: np.ndarray) -> np.ndarray:
     step = int(np.ceil(max(img.shape[:2]) / MAX_IMAGE_PX))
     return np.ascontiguousarray(img[::step, ::step]) if step > 1 else img
 
 
-def _ellipses(cov_xy: np.ndarray, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+def ellipses(cov_xy: np.ndarray, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """Half sizes (K, 3) and z-rotation quaternions xyzw (K, 4) of the ``sigmas`` ellipses of (K, 2, 2) covariances."""
     w, v = np.linalg.eigh(0.5 * (cov_xy + np.swapaxes(cov_xy, 1, 2)))
     half = np.zeros((len(w), 3))
@@ -64,7 +76,7 @@ def _ellipses(cov_xy: np.ndarray, sigmas: float = 3.0) -> tuple[np.ndarray, np.n
     return half, q
 
 
-def _flat(xy: np.ndarray, z: float) -> np.ndarray:
+def flat(xy: np.ndarray, z: float) -> np.ndarray:
     xy = np.asarray(xy, float).reshape(-1, 2)
     return np.column_stack([xy, np.full(len(xy), z)])
 
@@ -85,15 +97,14 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
             vertex_texcoords=[[0, 0], [1, 0], [1, 1], [0, 1]],
             albedo_texture=_downsample(np.asarray(inputs.orbital_image)[:, :, :3]),
         ), static=True)
-    cat = inputs.catalog
-    rec.log(p(ENT_CATALOG), rr.Points3D(_flat(cat.xy_m, Z_CATALOG), radii=0.5 * cat.size_m,
-                                        colors=COLORS["catalog"]), static=True)
+    for kind, cat in inputs.catalogs.items():
+        landmark_logger(kind).log_catalog(rec, p(ENT_CATALOG, kind), cat)
     if gt is not None:
-        rec.log(p(ENT_TRUTH), rr.LineStrips3D([_flat(gt.positions_m[:, :2], Z_TRUTH)], colors=COLORS["truth"],
+        rec.log(p(ENT_TRUTH), rr.LineStrips3D([flat(gt.positions_m[:, :2], Z_TRUTH)], colors=COLORS["truth"],
                                               radii=0.04), static=True)
         step = max(1, len(gt) // 3000)
         rr.send_columns(p(ENT_TRUTH_POSE), indexes=[rr.TimeColumn(TIMELINE, duration=gt.t[::step])],
-                        columns=rr.Points3D.columns(positions=_flat(gt.positions_m[::step, :2], Z_TRUTH)),
+                        columns=rr.Points3D.columns(positions=flat(gt.positions_m[::step, :2], Z_TRUTH)),
                         recording=rec)
     for key, run in runs.items():
         _log_run(rec, world, key, run, gt)
@@ -114,21 +125,18 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
 
     col = _color(key)
     if len(run.final):
-        rec.log(p(ENT_PATH), rr.LineStrips3D([_flat(run.final.positions_m[:, :2], Z_PATH)], colors=col, radii=0.03),
+        rec.log(p(ENT_PATH), rr.LineStrips3D([flat(run.final.positions_m[:, :2], Z_PATH)], colors=col, radii=0.03),
                 static=True)
-    lm = run.landmarks
-    if len(lm):
-        half, q = _ellipses(lm.cov_world_m2[:, :2, :2])
-        rec.log(p(ENT_LANDMARKS), rr.Ellipsoids3D(centers=_flat(lm.xyz_world_m[:, :2], Z_LANDMARKS), half_sizes=half,
-                                                  quaternions=q, colors=col, fill_mode="solid"), static=True)
+    for kind, lmap in run.landmarks.items():
+        landmark_logger(kind).log_map(rec, p(ENT_LANDMARKS, kind), lmap, col)
     on = run.online
     if len(on):
         idx = rr.TimeColumn(TIMELINE, duration=on.t)
         rr.send_columns(p(ENT_POSE), indexes=[idx], columns=rr.Points3D.columns(
-            positions=_flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
-        half, q = _ellipses(on.cov[:, :2, :2])
+            positions=flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
+        half, q = ellipses(on.cov[:, :2, :2])
         rr.send_columns(p(ENT_POSE_COV), indexes=[idx], columns=rr.Ellipsoids3D.columns(
-            centers=_flat(on.positions_m[:, :2], Z_PATH), half_sizes=half, quaternions=q), recording=rec)
+            centers=flat(on.positions_m[:, :2], Z_PATH), half_sizes=half, quaternions=q), recording=rec)
         if gt is not None:
             _log_errors(rec, world, key, run, gt)
     if run.outcomes:
@@ -136,7 +144,7 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
         xy = np.array([[o.fix.x_m, o.fix.y_m] for o in run.outcomes])
         colors = np.array([COLORS["fix_ok"] if o.accepted else COLORS["fix_bad"] for o in run.outcomes], dtype=np.uint8)
         rr.send_columns(p(ENT_FIXES), indexes=[rr.TimeColumn(TIMELINE, duration=t)], columns=rr.Points3D.columns(
-            positions=_flat(xy, Z_FIX), colors=colors, radii=np.full(len(t), 0.2)), recording=rec)
+            positions=flat(xy, Z_FIX), colors=colors, radii=np.full(len(t), 0.2)), recording=rec)
 
 
 def _log_errors(rec, world: str, key: str, run, gt) -> None:

@@ -1,28 +1,33 @@
-"""Landmark update of the EKF from one stereo rock frame.
+"""The rock kind's EKF layer: the landmark update from one stereo rock frame.
 
-Candidates (landmarks predicted within range) -> association (:mod:`reloc.association`, joint
-compatibility with the full innovation covariance) -> the per-frame observation budget
+Candidates (rock landmarks predicted within range) -> association (:mod:`reloc.association`,
+joint compatibility with the full innovation covariance) -> the per-frame observation budget
 (:mod:`reloc.budget`) -> one stacked Joseph update of the used pairs -> initialisation of new
 landmarks with their cross covariances -> map hygiene (unconfirmed tentative landmarks dropped)
-and the bound on the landmark count (the stalest landmarks marginalised out).
+and the bound on the landmark count (the stalest landmarks marginalised out). The rock settings
+are :class:`ekf.config.EkfConfig`'s own fields; see :mod:`ekf.kinds` for the seam.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ekf.config import EkfConfig
+from ekf.errors import EkfInputError
 from ekf.state import CALIB_DIM, FilterState
 from ekf.updates import block_diag3, joseph_update
 from reloc.association import associate
-from reloc.backend import LandmarkUpdateReport
+from reloc.backend import LandmarkMap, LandmarkUpdateReport
 from reloc.budget import innovation_trace, select_observations
+from reloc.geometry import skew
+from reloc.kinds import LandmarkKind, kind_code
 from reloc.landmark_model import (
     init_jacobians,
     point_in_base,
     point_jacobians,
     point_to_world,
-    skew,
 )
 from reloc.measurements import RockObservations
 
@@ -59,11 +64,13 @@ def calibration_jacobians(s: FilterState, q: np.ndarray) -> tuple[np.ndarray, np
     return H, -H
 
 
-class LandmarkUpdater:
+class RockUpdate:
     """Stateless apart from its counters; operates on a :class:`FilterState` in place."""
 
-    def __init__(self, config: EkfConfig) -> None:
+    def __init__(self, config: EkfConfig, kind: LandmarkKind) -> None:
         self.config = config
+        self.kind = kind.name
+        self.code = kind_code(kind.name)
         self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
                        "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0,
                        "n_budget_skipped": 0, "n_budget_new_skipped": 0, "n_lone_pairs_skipped": 0}
@@ -73,14 +80,35 @@ class LandmarkUpdater:
             for k, v in kw.items():
                 self.counts[k] += int(v)
 
+    def check(self, obs: RockObservations) -> None:
+        """Finite, consistently shaped arrays (the filter checks the time order)."""
+        arrays = (obs.xyz_base_m, obs.cov_base_m2, obs.size_m, obs.score)
+        if not math.isfinite(obs.t) or not all(np.all(np.isfinite(a)) for a in arrays):
+            raise EkfInputError(f"RockObservations at t={obs.t} contains NaN or inf")
+        n = len(obs)
+        if obs.xyz_base_m.shape != (n, 3) or obs.cov_base_m2.shape != (n, 3, 3) or obs.size_m.shape != (n,):
+            raise EkfInputError("RockObservations arrays have inconsistent shapes")
+
+    def landmark_map(self, s: FilterState) -> LandmarkMap:
+        """Confirmed rock landmarks in world with marginal covariances (tentative ones are left out)."""
+        rows = np.flatnonzero(s.book.confirmed & (s.book.kind == self.code))
+        return LandmarkMap(
+            ids=s.book.ids[rows].copy(),
+            xyz_world_m=s.l_world[rows].copy(),
+            cov_world_m2=s.landmark_cov_blocks(rows),
+            size_m=s.book.size_m[rows],
+            n_obs=s.book.n_obs[rows].copy(),
+            kind=self.kind,
+        )
+
     def update(self, s: FilterState, obs: RockObservations, count: bool = True) -> LandmarkUpdateReport:
         """Process one frame in place; ``count`` False during replays (counters stay per input)."""
         cfg = self.config
         n_det = len(obs)
-        if obs.t - s.t_last_frame < cfg.landmark_period_s - 1e-6:
+        if obs.t - s.t_last_frame.get(self.kind, -np.inf) < cfg.landmark_period_s - 1e-6:
             self._bump(count, n_frames_skipped=1)
             return LandmarkUpdateReport(obs.t, n_det, 0, 0, n_det)
-        s.t_last_frame = obs.t
+        s.t_last_frame[self.kind] = obs.t
         z, Rz = calibrated_measurements(s, obs.xyz_base_m, obs.cov_base_m2 * cfg.rock_cov_scale)
         size = obs.size_m
         head = s.head
@@ -90,7 +118,8 @@ class LandmarkUpdater:
         if s.n_landmarks:
             zhat_all = point_in_base(s.R_world_base, s.p_world, s.l_world)
             limit = cfg.association.max_range_m + cfg.candidate_margin_m
-            cand = np.flatnonzero(np.einsum("ij,ij->i", zhat_all, zhat_all) <= limit * limit)
+            near = np.einsum("ij,ij->i", zhat_all, zhat_all) <= limit * limit
+            cand = np.flatnonzero(near & (s.book.kind == self.code))  # rocks only
             zhat = zhat_all[cand]
         H_pose, H_l = point_jacobians(s.R_world_base, s.p_world, s.l_world[cand])
         if s.calibrated:
@@ -146,7 +175,7 @@ class LandmarkUpdater:
                 G_cal = np.einsum("ij,njk->nik", s.R_world_base, calibration_jacobians(s, z[new])[1])
                 G_pose = np.concatenate([G_pose, G_cal], axis=2)
             s.append_landmarks(l_new, G_pose, cov_w)
-            s.book.add(obs.t, size[new])
+            s.book.add(obs.t, size[new], self.code)
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
                    n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(),
                    n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size,

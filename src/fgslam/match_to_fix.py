@@ -1,0 +1,108 @@
+"""From a constellation match to a global fix: the local map's selection, the rover-weighted
+re-fit, and the fix with its covariance (see :mod:`fgslam.relocalizer` for the model).
+
+The constellation matcher returns ``world = s * R(theta) @ local + t`` for the map snapshot taken
+at ``t_meas``. Applied to the back-end's own pose estimate at that instant, it gives the rover's
+global (x, y, yaw): ``xy = s R xy_est + t``, ``yaw = yaw_est + theta``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
+from reloc.backend import LandmarkMap, PoseEstimate
+from reloc.geometry import wrap_angle
+from reloc.measurements import GlobalFix
+
+
+def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig) -> np.ndarray:
+    """Indices of the landmarks used for matching: n_obs >= min_obs within ``max_radius_m`` of the
+    rover, at most ``max_landmarks`` of them, the largest (or the nearest, ``cfg.select``) first."""
+    if len(lmap) == 0:
+        return np.zeros(0, dtype=int)
+    ok = np.flatnonzero(lmap.n_obs >= cfg.min_obs)
+    d = np.linalg.norm(lmap.xyz_world_m[ok, :2] - np.asarray(xy_rover)[:2], axis=1)
+    ok, d = ok[d <= cfg.max_radius_m], d[d <= cfg.max_radius_m]
+    if cfg.select == "largest":
+        order = np.lexsort((d, -lmap.size_m[ok]))  # larger first, nearer among equals
+    else:
+        order = np.argsort(d, kind="stable")
+    return np.sort(ok[order[: cfg.max_landmarks]])
+
+
+def fix_from_similarity(
+    est: PoseEstimate,
+    rotation_rad: float,
+    translation: np.ndarray,
+    scale: float,
+    local_inliers_xy: np.ndarray,
+    rmse_m: float,
+    cfg: RelocalizerConfig,
+    t_recv: float,
+    map_var_m2: float = 0.0,
+    similarity_cov: np.ndarray | None = None,
+    cov_scale: float = 1.0,
+) -> GlobalFix:
+    """Rover fix at ``est.t`` from a local->world similarity and its inliers (K, 2) in the local (estimated world) frame.
+
+    With ``similarity_cov`` (4, 4) over (tx_m, ty_m, theta_rad, scale) from the matcher, the fix
+    covariance is its first-order propagation through xy = s R xy_est + t, yaw = yaw_est + theta
+    (times ``inflation``^2, plus the map term); otherwise the inlier-geometry formula of the
+    module doc is used."""
+    L = np.asarray(local_inliers_xy, float).reshape(-1, 2)
+    n = L.shape[0]
+    if n < 3:
+        raise RelocalizerError(f"a fix needs at least 3 inliers, got {n}")
+    c, s = np.cos(rotation_rad), np.sin(rotation_rad)
+    R = np.array([[c, -s], [s, c]])
+    t = np.asarray(translation, float).reshape(2)
+    xy_est = est.position_m[:2]
+    xy = scale * R @ xy_est + t
+    yaw = float(wrap_angle(est.yaw_rad + rotation_rad))
+    dof_corr = n / max(n - 4, 1)  # 4 fitted parameters (similarity) shrink the residuals
+    sigma2 = max(rmse_m**2 * dof_corr + cfg.map_cov_weight * map_var_m2, cfg.sigma_floor_m**2)
+    sigma2 *= cfg.inflation**2
+    centroid = L.mean(axis=0)
+    spread = float(np.sum((L - centroid) ** 2))
+    var_yaw = max(sigma2 / max(spread, 1e-9), cfg.sigma_yaw_floor_rad**2)
+    d_world = R @ (xy_est - centroid)
+    perp = np.array([-d_world[1], d_world[0]])
+    cov = np.zeros((3, 3))
+    if similarity_cov is not None and np.all(np.isfinite(similarity_cov)):
+        J = np.zeros((3, 4))
+        J[:2, :2] = np.eye(2)
+        J[:2, 2] = scale * np.array([[-s, -c], [c, -s]]) @ xy_est
+        J[:2, 3] = R @ xy_est
+        J[2, 2] = 1.0
+        cov = cfg.inflation**2 * (J @ np.asarray(similarity_cov, float) @ J.T)
+        cov[:2, :2] += (cfg.inflation**2 * cfg.map_cov_weight * map_var_m2 / n + cfg.sigma_floor_m**2 / n) * np.eye(2)
+        cov[2, 2] = max(cov[2, 2], cfg.sigma_yaw_floor_rad**2)
+        cov = 0.5 * (cov + cov.T)
+    else:
+        cov[:2, :2] = sigma2 / n * np.eye(2) + var_yaw * np.outer(perp, perp)
+        cov[:2, 2] = cov[2, :2] = var_yaw * perp
+        cov[2, 2] = var_yaw
+    return GlobalFix(
+        t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
+        cov_xyyaw=cov * cov_scale, n_inliers=n, rmse_m=float(rmse_m),
+    )
+
+
+def rover_weighted_fit(
+    local_xy: np.ndarray, world_xy: np.ndarray, rover_xy: np.ndarray, radius_m: float, floor_sigma_m: float
+):
+    """Rigid re-fit of matched pairs (K, 2) weighted by closeness to the rover, ``w = 1 / (1 +
+    (d / radius_m)^2)`` (``RelocalizerConfig.fit_radius_m``): (rotation_rad, translation (2,),
+    scale 1, weighted RMSE m, (4, 4) covariance over (tx, ty, theta, scale), residual sigma
+    floored at ``floor_sigma_m``)."""
+    from reloc.match_result import similarity_covariance
+    from reloc.procrustes import umeyama_2d
+
+    d2 = np.sum((local_xy - np.asarray(rover_xy, float)) ** 2, axis=1)
+    w = 1.0 / (1.0 + d2 / radius_m**2)
+    sim = umeyama_2d(local_xy, world_xy, w, with_scale=False)
+    res = sim.apply(local_xy) - world_xy
+    rmse = float(np.sqrt(np.sum(w * np.sum(res * res, axis=1)) / np.sum(w)))
+    cov = similarity_covariance(sim, local_xy, world_xy, floor_sigma_m=floor_sigma_m, with_scale=False, weights=w)
+    return float(sim.theta_rad), np.asarray(sim.translation, float), 1.0, rmse, cov

@@ -1,0 +1,95 @@
+"""Configuration of the rock relocalizer (:class:`fgslam.relocalizer.Relocalizer`): when and how
+the local map is matched, and how a match becomes a fix. Defaults in code; the measurements
+behind them are in docs/app.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated, Literal
+
+from fgslam.errors import FgslamError
+from reloc.config import Ge, Interval, NonNegative, Positive, PositiveInt, checked
+from reloc.errors import ConfigError
+
+
+class RelocalizerError(FgslamError):
+    """Bad relocalizer configuration or input."""
+
+
+@dataclass(frozen=True)
+@checked(RelocalizerError)
+class RelocalizerConfig:
+    """When and how the local map is matched, and how a match becomes a fix (defaults in code)."""
+
+    # one attempt per period of stream time (goal: fixes >= 0.2 Hz; cnes: 0.147 Hz at 3 s, 0.219 at 2 s)
+    period_s: Positive = 2.0
+    min_obs: PositiveInt = 2  # landmarks seen fewer times are not matched (likely false positives)
+    min_landmarks: Annotated[int, Ge(3)] = 8  # skip the attempt below this many usable landmarks
+    max_landmarks: Annotated[int, Ge(3)] = 160  # this many landmarks form the local constellation ...
+    max_radius_m: Positive = 30.0  # ... chosen within this distance of the rover ...
+    # ... "largest" first (the orbital catalog holds mostly the larger rocks: on a dense yard the
+    # nearest 80 are small rocks in a few metres, few of them catalogued) or "nearest" first
+    select: Literal["largest", "nearest"] = "largest"
+    # an attempt is skipped while the rover has moved less than min_travel_m and turned less than
+    # min_turn_deg since the last one (standing still, its map and pose say nothing new: my2021,
+    # 687 -> 554 attempts, the same ATE, 44 -> 48x real time); both 0: never skipped
+    min_travel_m: NonNegative = 0.05
+    min_turn_deg: NonNegative = 3.0
+    latency: Literal["fixed", "measured"] = "fixed"  # "fixed": t_recv = t_meas + delay_s; "measured": + matching wall time
+    delay_s: NonNegative = 2.0
+    latency_scale: Positive = 1.0  # multiplies the measured matching time (slower onboard CPU)
+    sigma_floor_m: NonNegative = 0.05  # per-point residual sigma never below this
+    sigma_yaw_floor_rad: NonNegative = 0.003
+    inflation: Annotated[float, Ge(1)] = 1.75  # multiplies the residual sigma (unmodelled map distortion)
+    map_cov_weight: NonNegative = 0.0  # weight of the landmarks' own planar covariance in sigma^2
+    # The fix describes the rover, so the final fit weighs each matched rock by how well the map
+    # ties it to the rover: w = 1 / (1 + (d / fit_radius_m)^2) at distance d from the rover (a
+    # relative map error that grows with distance and equals the catalog's at fit_radius_m),
+    # covariance from the weighted fit. None: every inlier alike (the matcher's own fit). Seed 0,
+    # iSAM2 + reloc, None -> 10: my2020 0.040 -> 0.034 m, my2021 0.034 -> 0.030, my2022 0.036 ->
+    # 0.032, cnes 0.060 -> 0.057; my2020 seed 2 0.166 m / 62 % inside 3 sigma -> 0.060 m / 96 %
+    # (a map bent on a climb gave fixes biased with it); docs/app.md
+    fit_radius_m: Positive | None = 10.0
+    max_scale_error: Annotated[float, Interval(gt=0, lt=1)] = 0.05  # reject matches whose scale is further than this from 1
+    # Search prior: the map's centroid must land within prior_min_radius_m + prior_sigmas *
+    # sigma_pos (largest std of the estimate's x/y) of where the estimate puts it; None: no prior.
+    # Successive fixes share most inlier rocks, hence most of their catalog error: fusing them as
+    # independent would make a back-end overconfident. correlation "rocks" (default): each fix's
+    # covariance is multiplied by 1 + the mean, over its inlier catalog rocks, of how many earlier
+    # fixes used that rock (sum over earlier fixes of the fraction of rocks shared with them; for
+    # fixes on the same rocks the covariance-intersection bound, whenever they were made).
+    # "window": 1 + number of fixes produced in the preceding correlation_window_s. "none": 1.
+    correlation: Literal["rocks", "window", "none"] = "rocks"
+    correlation_window_s: Positive = 60.0
+    prior_sigmas: Positive | None = 6.0
+    prior_min_radius_m: NonNegative = 3.0
+    # Tracking: with a prior, first verify the pose the estimate gives (the map as it is, in the
+    # estimate's world frame) and search only if that does not convince (reloc.matcher module doc).
+    # Off by default: it saves matching time on dense catalogs (my2020 reference pass: matching
+    # 17.1 -> 9.6 s CPU on the same snapshots) but a fix found from the estimate leans towards it
+    # (my2022, iSAM2 + reloc: fixes' median error 0.023 -> 0.031 m, ATE 0.036 -> 0.042 m; my2020,
+    # my2021, cnes: the same ATE within 2 %)
+    track: bool = False
+    # With a prior, match against the catalog rocks that can hold the map (within prior radius +
+    # the map's extent + crop_margin_m of where the estimate puts it): a small index built per
+    # attempt (a few ms) instead of hypotheses over the whole catalog. False: whole catalog.
+    crop_catalog: bool = True
+    crop_margin_m: NonNegative = 2.0
+    # Crops are cut on a grid: centre snapped to crop_snap_m, radius rounded up to a multiple of
+    # it (plus the snapping error), so successive attempts a few decimetres apart share one crop
+    # and its index, kept in a cache of crop_cache crops. The crop still holds every rock that
+    # can hold the map.
+    crop_snap_m: Positive = 2.0
+    crop_cache: PositiveInt = 8
+    matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
+
+    def __post_init__(self) -> None:
+        if not self.matcher:
+            return
+        from reloc.config import config_from_dict
+        from reloc.matcher import MatcherConfig
+
+        try:  # the matcher's overrides are checked with the config, not at the first attempt
+            config_from_dict(MatcherConfig, self.matcher, where="matcher.")
+        except ConfigError as exc:
+            raise RelocalizerError(f"relocalizer: {exc}") from None

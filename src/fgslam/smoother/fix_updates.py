@@ -1,0 +1,102 @@
+"""The smoother's late-fix stage: a (late) global fix lands on the keyframe before its ``t_meas``
+through the odometry in between, is gated, robustly weighted, applied in one iSAM2 update (the
+two newest keyframes eliminated last), and retracted, worst first, if its residual stays large
+after optimisation. Mixed into :class:`fgslam.smoother.isam2_backend.Isam2Smoother`, whose state
+(``config``, ``solver``, ``kfs``, ``segments``, ``acc``, ``fixes``) it works on."""
+
+from __future__ import annotations
+
+import logging
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from fgslam.smoother.factors import cov_world_to_gtsam
+from fgslam.smoother.fixes import FixRecord, innovation_d2, place_fix, residual_d2_many
+from fgslam.smoother.solver import SolverUpdateError
+from reloc.backend import FixOutcome
+from reloc.measurements import GlobalFix
+
+log = logging.getLogger("fgslam.smoother.isam2_backend")
+
+
+class LateFixes:
+    """``_apply_fix`` and the retraction of fixes (see module doc)."""
+
+    def _apply_fix(self, fix: GlobalFix) -> FixOutcome:
+        cfg = self.config.fixes
+        k = self.kfs.before(fix.t_meas)
+        if k < 0:
+            return FixOutcome(fix, False, "t_meas is before the first keyframe")
+        if fix.t_meas > self.acc.t_now + 0.1:
+            return FixOutcome(fix, False, f"t_meas {fix.t_meas:.2f} s is ahead of the odometry ({self.acc.t_now:.2f} s)")
+        seg = self.segments.get(k)
+        if seg is None:
+            return FixOutcome(fix, False, f"older than the odometry history ({cfg.max_age_s:.0f} s)")
+        if self.solver.fixed_lag and (
+            not self.solver.alive(X(k)) or self.kfs.t[k] < self.kfs.t[-1] - self.config.fixed_lag_s + cfg.window_margin_s
+        ):
+            return FixOutcome(fix, False, f"older than the smoother window ({self.config.fixed_lag_s:.0f} s)")
+        T_rel, C_rel = seg.at(fix.t_meas)
+        T_kf = self.solver.pose(X(k))
+        yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
+        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor)
+        if cfg.gate_smoothed_marginal:
+            cov_kf = self.solver.marginal_cov(X(k))
+        else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
+            cov_kf = cov_world_to_gtsam(T_kf[:3, :3], self.kfs.online_cov[k])
+        d2, dist = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res)
+        if dist > cfg.gate_distance_m:
+            return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
+        if d2 > cfg.gate_chi2:
+            return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {cfg.gate_chi2:.1f}", d2)
+        snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
+        alive = set(self.solver._alive)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(factor)
+        try:
+            idx = self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
+            self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
+        except (SolverUpdateError, RuntimeError, ValueError) as exc:
+            self.solver.restore(snap, alive)
+            self.n_failed_updates += 1
+            return FixOutcome(fix, False, f"solver update failed: {exc}", d2)
+        rec = FixRecord(fix, k, X(k), T_rel, cov_res, idx[0])
+        self.fixes.append(rec)
+        self._retract_outliers()
+        self._refresh_latest()
+        if not rec.active:
+            return FixOutcome(fix, False, rec.retracted_reason, d2)
+        return FixOutcome(fix, True, "", d2)
+
+    def _retract_outliers(self) -> None:
+        """Remove, worst first, fixes whose residual stays above ``retract_chi2`` after optimisation."""
+        cfg = self.config.fixes
+        for _ in range(3):
+            live = [r for r in self.fixes if r.active and self.solver.alive(r.key)]
+            if not live:
+                return
+            d2 = residual_d2_many(live, np.array([self.solver.pose(r.key) for r in live]))
+            worst = int(np.argmax(d2))
+            if d2[worst] <= cfg.retract_chi2:
+                return
+            rec = live[worst]
+            try:
+                self._timed_update(gtsam.NonlinearFactorGraph(), gtsam.Values(), remove=[rec.factor_index], keep_latest_root=True)
+                self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
+            except (SolverUpdateError, RuntimeError, ValueError) as exc:
+                log.warning("could not retract fix at t=%.2f: %s", rec.fix.t_meas, exc)
+                return
+            self._remap_indices()
+            rec.active = False
+            rec.retracted_reason = f"retracted: residual d2 {d2[worst]:.1f} > {cfg.retract_chi2:.1f} after optimisation"
+            log.info("fix at t=%.2f %s", rec.fix.t_meas, rec.retracted_reason)
+
+    def _remap_indices(self) -> None:
+        m = self.solver.take_index_map()
+        if m:
+            for r in self.fixes:
+                if r.active:
+                    r.factor_index = m.get(r.factor_index, r.factor_index)
+
