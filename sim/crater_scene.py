@@ -198,19 +198,23 @@ def sun_shadows(z_m: np.ndarray, spacing_m: float, lighting: Lighting) -> np.nda
     ny, nx = z_m.shape
     az = np.deg2rad(lighting.sun_azimuth_deg)
     tan_e = np.tan(np.deg2rad(lighting.sun_elevation_deg))
-    diag = int(np.ceil(np.hypot(nx, ny))) + 2
-    c, s = np.cos(az), np.sin(az)
-    # rotated grid (diag x diag): its +column axis points towards the sun (world +x turned by az)
+    up = 2  # the turned grid samples twice as finely: interpolation there must not shave the rims
+    diag = int(np.ceil(up * np.hypot(nx, ny))) + 4
+    c, s = np.cos(az) / up, np.sin(az) / up
+    # turned grid (diag x diag) -> heightfield grid: its +column axis points towards the sun
     M = np.array([[c, -s, 0.0], [s, c, 0.0]])
     M[:, 2] = np.array([(nx - 1) / 2, (ny - 1) / 2]) - M[:, :2] @ np.array([(diag - 1) / 2, (diag - 1) / 2])
-    low = float(z_m.min()) - 1e3
-    zr = cv2.warpAffine(z_m.astype(np.float32), M.astype(np.float32), (diag, diag), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=low)
-    w = zr - (np.arange(diag, dtype=np.float32) * np.float32(spacing_m * tan_e))[None, :]
+    M = M.astype(np.float32)
+    zr = cv2.warpAffine(z_m.astype(np.float32), M, (diag, diag), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                        borderMode=cv2.BORDER_REPLICATE)
+    inside = cv2.warpAffine(np.ones((ny, nx), np.uint8), M, (diag, diag), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    w = zr - (np.arange(diag, dtype=np.float32) * np.float32(spacing_m / up * tan_e))[None, :]
+    w[inside == 0] = -np.inf  # beyond the heightfield nothing blocks the sun
     ahead = np.maximum.accumulate(w[:, ::-1], axis=1)[:, ::-1]
     ahead = np.concatenate([ahead[:, 1:], np.full((diag, 1), -np.inf, np.float32)], axis=1)
     lit_r = (w >= ahead - np.float32(0.02 * spacing_m)).astype(np.uint8)
-    lit = cv2.warpAffine(lit_r, M.astype(np.float32), (nx, ny), flags=cv2.INTER_NEAREST)
+    lit = cv2.warpAffine(lit_r, M, (nx, ny), flags=cv2.INTER_NEAREST)
     return lit.astype(bool)
 
 

@@ -13,12 +13,12 @@ from pathlib import Path
 
 from reloc.detector.errors import DetectorError
 
-OrbitalDetectorFactory = Callable[[Path | None, object | None], object]
+OrbitalDetectorFactory = Callable[..., object]
 _ORBITAL: dict[str, OrbitalDetectorFactory] = {}
 
 
 def register_orbital_detector(landmark: str, factory: OrbitalDetectorFactory) -> None:
-    """Register ``factory(model_path or None, DetectorConfig or None)`` for ``landmark``."""
+    """Register ``factory(model_path or None, DetectorConfig or None, **options)`` for ``landmark``."""
     _ORBITAL[landmark] = factory
 
 
@@ -27,11 +27,12 @@ def orbital_landmarks() -> tuple[str, ...]:
     return tuple(_ORBITAL)
 
 
-def orbital_detector(landmark: str, model: str | Path | None = None, config=None):
-    """The orbital detector of ``landmark`` (``model``: its ONNX file, default the shipped one)."""
+def orbital_detector(landmark: str, model: str | Path | None = None, config=None, **options):
+    """The orbital detector of ``landmark`` (``model``: its ONNX file, default the shipped one;
+    ``options``: the kind's own settings, e.g. ``nodata`` for craters)."""
     if landmark not in _ORBITAL:
         raise DetectorError(f"no orbital detector for landmark kind {landmark!r}; known: {', '.join(_ORBITAL)}")
-    return _ORBITAL[landmark](None if model is None else Path(model), config)
+    return _ORBITAL[landmark](None if model is None else Path(model), config, **options)
 
 
 def _rock(model: Path | None, config) -> object:
@@ -40,11 +41,11 @@ def _rock(model: Path | None, config) -> object:
     return RockDetector(model, kind="nadir", config=config or DetectorConfig())
 
 
-def _crater(model: Path | None, config) -> object:
-    from reloc.detector.craters import CraterDetector
+def _crater(model: Path | None, config, nodata: float | None = None) -> object:
+    from reloc.detector.craters import CraterConfig, CraterDetector
     from reloc.detector.runtime import DetectorConfig
 
-    return CraterDetector(model, config=config or DetectorConfig())
+    return CraterDetector(model, config=config or DetectorConfig(), crater=CraterConfig(nodata=nodata))
 
 
 register_orbital_detector("rock", _rock)
