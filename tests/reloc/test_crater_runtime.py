@@ -79,6 +79,10 @@ def test_decode_craters_round_trip():
     order = np.argsort(cc[:, 0])
     assert np.allclose(cc[order], c[np.argsort(c[:, 0])], atol=1e-4)
     assert np.allclose(dd[order], d[np.argsort(c[:, 0]), 0], rtol=1e-5) and np.allclose(s, 1.0)
+    # a training crop without any crater
+    empty = centre_targets(np.zeros((0, 2)), np.zeros((0, 1)), np.array([[0, 0, 9, 9]]), 64, 64, 2, sigma_per_size=0.1)
+    assert empty["reg"].shape == (3, 32, 32) and empty["heat"].max() == 0 and empty["weight"][:4, :4].max() == 0
+    assert len(decode_craters(np.concatenate([empty["heat"][None], empty["reg"]])[None], 2, 0.5, 10)[2]) == 0
 
 
 def test_circle_iou_and_nms():

@@ -32,6 +32,8 @@ def read_nadir_image(path: Path):
         except Exception as exc:  # tifffile raises several types for damaged files
             raise InputFileError(f"{path}: not a readable TIFF ({exc})") from None
         img = np.squeeze(img)
+        if img.size == 0:
+            raise InputFileError(f"{path}: not a readable TIFF (no image data)")
         if img.ndim == 3 and img.shape[0] in (3, 4) and img.shape[2] not in (3, 4):
             img = np.moveaxis(img, 0, 2)  # planar RGB
         if img.ndim == 3 and img.shape[2] == 4:

@@ -26,7 +26,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 ARCH = {"widths": (12, 24, 48, 96, 128), "out_stride": 2, "fine_width": 12, "n_out": 4}
-CROP_PX = 224
+CROP_PX = 192
 SCALE = (1.0, 2.8)
 # training scenes carry up to 3 x the model's density of craters above 24 px (rare, and the
 # ones the coarse pyramid levels see); validation and evaluation scenes keep the model's

@@ -32,8 +32,9 @@ def centre_targets(centres_px: np.ndarray, sizes_px: np.ndarray, ignore_xyxy: np
     reg (2 + k, h, w) = (offset x, offset y, log sizes in cells), mask (h, w)."""
     STRIDE = stride  # the cell size of this model (shadows the module default)
     h, w = h_px // STRIDE, w_px // STRIDE
-    sizes = np.reshape(np.asarray(sizes_px, dtype=float), (len(np.reshape(centres_px, (-1, 2))), -1))
-    k = sizes.shape[1] if sizes.ndim == 2 and sizes.shape[1] else 2
+    sizes = np.asarray(sizes_px, dtype=float)
+    sizes = sizes[:, None] if sizes.ndim == 1 else sizes
+    k = sizes.shape[1]
     heat = np.zeros((h, w), np.float32)
     weight = np.ones((h, w), np.float32)
     reg = np.zeros((2 + k, h, w), np.float32)
