@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fgslam.bench.detect import IOUS, _one_cv_thread, _timed, average_precision
+from fgslam.bench.detect import IOUS, _one_cv_thread, _timed, average_precision, goal_margin_threshold
 from reloc.detector.circles import CraterDetections, circle_iou_matrix
 
 GOAL = {"precision": 0.9, "recall": 0.8, "centre_error_d": 0.10, "diameter_error": 0.10, "tile_s": 0.050}
@@ -100,16 +100,7 @@ def pick_crater_threshold(dets: list, labels: list, goal_precision: float, goal_
         m, _ = match_craters(det, lab, 0.5, (min_px, np.inf))
         scores.append(det.score[m >= 0])
         tps.append(m[m >= 0])
-    s, t = np.concatenate(scores), np.concatenate(tps)
-    if len(s) == 0:
-        return 0.3
-    order = np.argsort(-s, kind="stable")
-    s, t = s[order], t[order].astype(float)
-    ctp = np.cumsum(t)
-    margin = np.minimum(ctp / np.arange(1, len(t) + 1) - goal_precision, ctp / max(n_gt, 1) - goal_recall)
-    last = np.r_[s[1:] != s[:-1], True]  # a threshold keeps every detection of equal score
-    k = int(np.flatnonzero(last)[np.argmax(margin[last])])
-    return float(max(s[k], 0.05))
+    return goal_margin_threshold(np.concatenate(scores), np.concatenate(tps), n_gt, goal_precision, goal_recall)
 
 
 @dataclass(frozen=True)

@@ -19,15 +19,22 @@ import numpy as np
 from reloc.detector.boxes import nms
 
 
-def decode_centernet(out: np.ndarray, stride: int, score_threshold: float, max_detections: int):
-    """Boxes (N, 4) xyxy in input pixels and scores (N,) from a (1, 5, h, w) centernet output."""
-    heat = np.ascontiguousarray(out[0, 0], dtype=np.float32)
+def heat_peaks(heat: np.ndarray, score_threshold: float, max_detections: int):
+    """Rows (N,), columns (N,) and scores (N,) of the local maxima of ``heat`` (h, w) over a 3 x 3
+    window at or above ``score_threshold``, at most ``max_detections`` (the best)."""
+    heat = np.ascontiguousarray(heat, dtype=np.float32)
     peak = heat >= cv2.dilate(heat, np.ones((3, 3), np.uint8))
     ii, jj = np.nonzero(peak & (heat >= score_threshold))
     score = heat[ii, jj]
     if len(score) > max_detections:
         top = np.argsort(-score, kind="stable")[:max_detections]
         ii, jj, score = ii[top], jj[top], score[top]
+    return ii, jj, score
+
+
+def decode_centernet(out: np.ndarray, stride: int, score_threshold: float, max_detections: int):
+    """Boxes (N, 4) xyxy in input pixels and scores (N,) from a (1, 5, h, w) centernet output."""
+    ii, jj, score = heat_peaks(out[0, 0], score_threshold, max_detections)
     cx = (jj + out[0, 1, ii, jj]) * stride
     cy = (ii + out[0, 2, ii, jj]) * stride
     w = np.exp(np.clip(out[0, 3, ii, jj], -5.0, 8.0)) * stride
@@ -60,13 +67,7 @@ def decode_craters(out: np.ndarray, stride: int, score_threshold: float, max_det
     """Centres (N, 2) and rim diameters (N,) in input pixels and scores (N,) from a (1, 4, h, w)
     ``crater-centernet-v1`` output: per cell (centre heat in [0, 1], offset x, offset y, log
     diameter), offsets and diameter in output cells of ``stride`` pixels; peaks as for boxes."""
-    heat = np.ascontiguousarray(out[0, 0], dtype=np.float32)
-    peak = heat >= cv2.dilate(heat, np.ones((3, 3), np.uint8))
-    ii, jj = np.nonzero(peak & (heat >= score_threshold))
-    score = heat[ii, jj]
-    if len(score) > max_detections:
-        top = np.argsort(-score, kind="stable")[:max_detections]
-        ii, jj, score = ii[top], jj[top], score[top]
+    ii, jj, score = heat_peaks(out[0, 0], score_threshold, max_detections)
     cx = (jj + out[0, 1, ii, jj]) * stride
     cy = (ii + out[0, 2, ii, jj]) * stride
     d = np.exp(np.clip(out[0, 3, ii, jj], -5.0, 8.0)) * stride
