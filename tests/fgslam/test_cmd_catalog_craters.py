@@ -121,3 +121,8 @@ def test_bad_image_files(tmp_path, capsys):
     rc, err = _run(["catalog", str(nan_tif), "--gsd", "1", "--landmark", "crater", "--out", str(out)], capsys)
     assert rc == 2 and "no valid pixel" in err
     assert not out.exists()
+
+
+def test_bench_detect_rejects_an_unknown_landmark(capsys):
+    rc, err = _run(["bench", "detect", "--landmark", "boulder"], capsys)
+    assert rc == 2 and "--landmark must be one of rock, crater, got 'boulder'" in err

@@ -150,16 +150,17 @@ def test_tiled_detection_equals_whole_image(tmp_path):
 
 def test_pyramid_bands_and_levels(tmp_path):
     det = CraterDetector(_stub_model(tmp_path))
-    assert det.levels((640, 640)) == 4 and det.levels((100, 2000)) == 1 and det.levels((160, 160)) == 2
-    assert det.band(0, 4) == (0.0, 26.0) and det.band(1, 4) == (11.0, 26.0) and det.band(3, 4) == (11.0, 48.0)
-    # a stub that reports 30 px craters: over the band of the finer levels, so they come from
-    # the coarsest (level 2 of a 256 px image), at 4 x its diameter and coordinates
-    det30 = CraterDetector(_stub_model(tmp_path, "d30.onnx", diameter_px=30.0))
+    assert det.levels((640, 640)) == 5 and det.levels((40, 2000)) == 1 and det.levels((160, 160)) == 3
+    assert det.band(0, 5) == (0.0, 13.0) and det.band(1, 5) == (6.0, 13.0) and det.band(4, 5) == (6.0, 24.0)
+    # a stub that reports 15 px craters: over the band of the finer levels, so they come from
+    # the coarsest (level 2 of a 256 px image with max_diameter_px 64), at 4 x its diameter
+    # and coordinates
+    det30 = CraterDetector(_stub_model(tmp_path, "d30.onnx", diameter_px=15.0), crater=CraterConfig(max_diameter_px=64.0))
     img = np.full((256, 256), 20, np.uint8)
     img[96:112, 48:64] = 250
     d = det30.detect(img)
     assert det30.levels(img.shape) == 3
-    assert len(d) == 1 and d.diameters_px[0] == pytest.approx(120.0)
+    assert len(d) == 1 and d.diameters_px[0] == pytest.approx(60.0)
     assert np.linalg.norm(d.centers_px[0] - [56.0, 104.0]) <= 6.0  # a plateau of 8 px output cells
     # nodata: a detection centred on an invalid pixel is dropped
     img_nd = img.astype(np.float32)
@@ -168,8 +169,8 @@ def test_pyramid_bands_and_levels(tmp_path):
     assert len(det30.detect(img_nd)) == 0
     img_nd[centres[:, 1], centres[:, 0]] = -1.0
     assert len(det30.detect(img_nd)) == 1
-    assert len(CraterDetector(_stub_model(tmp_path, "d30.onnx", diameter_px=30.0),
-                              crater=CraterConfig(nodata=-1.0)).detect(img_nd)) == 0
+    assert len(CraterDetector(_stub_model(tmp_path, "d30.onnx", diameter_px=15.0),
+                              crater=CraterConfig(max_diameter_px=64.0, nodata=-1.0)).detect(img_nd)) == 0
 
 
 def test_bad_crater_model_files(tmp_path):

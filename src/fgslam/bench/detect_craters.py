@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fgslam.bench.detect import IOUS, _one_cv_thread, _timed, average_precision, goal_margin_threshold
-from reloc.detector.circles import CraterDetections, circle_iou_matrix
+from reloc.detector.circles import CraterDetections, circle_iou_pairs
 
 GOAL = {"precision": 0.9, "recall": 0.8, "centre_error_d": 0.10, "diameter_error": 0.10, "tile_s": 0.050}
 MIN_GOAL_PX = 8.0
@@ -30,9 +30,36 @@ SIZE_ROWS = (("all, >= 4 px", 4.0, np.inf), (">= 8 px (goal)", MIN_GOAL_PX, np.i
 TILE_PX = 640
 
 
-def match_craters(dets: CraterDetections, labels, iou_thr: float, size_px: tuple[float, float] = (0.0, np.inf)):
+def overlaps(dets: CraterDetections, labels) -> tuple[np.ndarray, np.ndarray]:
+    """(disc IoU (N, K), near (N, K)) of detections and labelled craters: IoU computed only for
+    discs that touch (others 0); ``near``: a fair overlap (IoU >= 0.3) or the detection's centre
+    inside the crater at a comparable size, the test for a detection on an ignore crater."""
+    from scipy.spatial import cKDTree
+
+    n, k = len(dets), len(labels.diameters_px)
+    iou = np.zeros((n, k))
+    near = np.zeros((n, k), dtype=bool)
+    if n == 0 or k == 0:
+        return iou, near
+    c, d = dets.centers_px.astype(float), dets.diameters_px.astype(float)
+    ct, dt = labels.centres_px.astype(float), labels.diameters_px.astype(float)
+    reach = 0.5 * (d.max() + dt.max()) + 1.0
+    pairs = cKDTree(c).sparse_distance_matrix(cKDTree(ct), reach, output_type="ndarray")
+    i, j = pairs["i"], pairs["j"]
+    dist = np.linalg.norm(c[i] - ct[j], axis=1)
+    touch = dist < 0.5 * (d[i] + dt[j]) + 1.0
+    i, j, dist = i[touch], j[touch], dist[touch]
+    v = circle_iou_pairs(c[i], d[i], ct[j], dt[j])
+    iou[i, j] = v
+    near[i, j] = (v >= 0.3) | ((dist <= 0.5 * dt[j] + 1.0) & (d[i] <= 2.0 * dt[j] + 2.0))
+    return iou, near
+
+
+def match_craters(dets: CraterDetections, labels, iou_thr: float, size_px: tuple[float, float] = (0.0, np.inf),
+                  pre: tuple[np.ndarray, np.ndarray] | None = None):
     """Per detection (N,): 1 true positive, 0 false positive, -1 ignored, and the index of its true
-    crater in ``labels`` (-1 if none); true craters outside ``size_px`` act as ignore craters."""
+    crater in ``labels`` (-1 if none); true craters outside ``size_px`` act as ignore craters.
+    ``pre``: :func:`overlaps` of the pair, when already computed."""
     lo, hi = size_px
     d_true = labels.diameters_px
     positive = ~labels.ignore & (d_true >= lo) & (d_true < hi)
@@ -41,15 +68,13 @@ def match_craters(dets: CraterDetections, labels, iou_thr: float, size_px: tuple
     gt_of = np.full(len(dets), -1, dtype=np.int64)
     if len(dets) == 0:
         return out, gt_of
-    iou = circle_iou_matrix(dets.centers_px, dets.diameters_px, labels.centres_px, d_true)
+    iou, near = overlaps(dets, labels) if pre is None else pre
     taken = ~positive.copy()
-    # near an ignore crater: a fair overlap, or centre inside it at a comparable size
-    dist = np.linalg.norm(dets.centers_px[:, None] - labels.centres_px[None], axis=2) if len(d_true) else iou
-    near = (iou >= 0.3) | ((dist <= 0.5 * d_true[None] + 1.0) & (dets.diameters_px[:, None] <= 2.0 * d_true[None] + 2.0))
-    on_ignore = (near & ~positive[None]).any(axis=1) if len(d_true) else np.zeros(len(dets), bool)
+    on_ignore = (near & ~positive[None]).any(axis=1)
     in_range = (dets.diameters_px >= lo) & (dets.diameters_px < hi)
+    has = (np.where(taken[None], 0.0, iou) >= iou_thr).any(axis=1) if len(d_true) else np.zeros(len(dets), bool)
     for k in order:
-        if len(d_true):
+        if has[k]:
             cand = np.where(taken, -1.0, iou[k])
             j = int(np.argmax(cand))
             if cand[j] >= iou_thr:
@@ -66,10 +91,11 @@ def evaluate_craters(dets: list, labels: list, score_threshold: float, size_px: 
     n_gt = sum(int(np.sum(~lab.ignore & (lab.diameters_px >= lo) & (lab.diameters_px < hi))) for lab in labels)
     row = {"n_images": len(labels), "n_true": n_gt, "score_threshold": score_threshold}
     aps = []
+    pre = [overlaps(det, lab) for det, lab in zip(dets, labels)]
     for thr in IOUS:
         scores, tps, c_err, d_err = [], [], [], []
-        for det, lab in zip(dets, labels):
-            m, j = match_craters(det, lab, float(thr), size_px)
+        for det, lab, p in zip(dets, labels, pre):
+            m, j = match_craters(det, lab, float(thr), size_px, p)
             scores.append(det.score[m >= 0])
             tps.append(m[m >= 0])
             if thr == 0.5:

@@ -9,7 +9,7 @@ with the camera applied before the reduction (how a pyramid level of a sharp ima
 after it (a coarser camera). Then the runtime's normalisation (:func:`reloc.detector.image.
 normalised_grey`), contrast and brightness jitter, flips and quarter turns.
 
-Craters from 3.5 to 64 px across (in the crop) are the targets; smaller, larger or hidden ones
+Craters from 3.5 to 32 px across (in the crop) are the targets; smaller, larger or hidden ones
 are ignored around their centres. The runtime covers 4-200 px and more with an image pyramid,
 keeping at each level the craters of a band inside that range (:mod:`reloc.detector.craters`).
 """
@@ -31,7 +31,7 @@ SCALE = (1.0, 2.8)
 # training scenes carry up to 3 x the model's density of craters above 24 px (rare, and the
 # ones the coarse pyramid levels see); validation and evaluation scenes keep the model's
 TRAIN_SCENES = {"large_crater_boost": (1.0, 3.0)}
-TRAIN_DIAMETER_PX = (3.5, 64.0)  # targets in a crop; outside this range a crater is ignored
+TRAIN_DIAMETER_PX = (3.5, 32.0)  # targets in a crop; outside this range a crater is ignored
 SIGMA_PER_DIAMETER = 0.1  # heatmap Gaussian sigma / crater diameter
 SIZE_WEIGHT = 1.0  # L1 weight of log diameter (relative to the offsets')
 INPUT_SIZE_WH = (640, 640)  # the tile the runtime cuts large images into
@@ -166,7 +166,8 @@ def run(args) -> int:
     info = {"images": len(scenes), "data": "sim.crater_datasets train split", "iters": len(hist), "arch": net.arch,
             "lr": args.lr, "batch": args.batch, "crop": args.crop, "scale": list(SCALE), "seed": args.seed,
             "device": device, "threads": args.threads, "data_s": round(t_render, 1), "train_s": round(t_train, 1),
-            "final_loss": round(float(np.mean(hist[-50:])), 4), "command": getattr(args, "command", "")}
+            "final_loss": round(float(np.mean(hist[-50:])), 4), "command": getattr(args, "command", ""),
+            "init": None if args.init is None else str(args.init)}
     if args.weights is not None:
         save_weights(net, args.weights)
     export_onnx(net, "crater", args.out, info, input_size_wh=INPUT_SIZE_WH,

@@ -39,8 +39,14 @@ def circle_iou_matrix(ca: np.ndarray, da: np.ndarray, cb: np.ndarray, db: np.nda
     """Intersection over union (N, M) of discs ``a`` (centres (N, 2), diameters (N,)) and ``b``
     (centres (M, 2), diameters (M,))."""
     ca, cb = np.reshape(ca, (-1, 2)).astype(float), np.reshape(cb, (-1, 2)).astype(float)
-    ra, rb = 0.5 * np.ravel(da).astype(float)[:, None], 0.5 * np.ravel(db).astype(float)[None, :]
-    d = np.linalg.norm(ca[:, None, :] - cb[None, :, :], axis=2)
+    return circle_iou_pairs(ca[:, None, :], np.ravel(da)[:, None], cb[None, :, :], np.ravel(db)[None, :])
+
+
+def circle_iou_pairs(ca: np.ndarray, da: np.ndarray, cb: np.ndarray, db: np.ndarray) -> np.ndarray:
+    """Disc IoU of discs ``a`` and ``b`` element by element (centres (..., 2), diameters (...),
+    broadcast against each other)."""
+    ra, rb = 0.5 * np.asarray(da, dtype=float), 0.5 * np.asarray(db, dtype=float)
+    d = np.linalg.norm(np.asarray(ca, dtype=float) - np.asarray(cb, dtype=float), axis=-1)
     small, big = np.minimum(ra, rb), np.maximum(ra, rb)
     with np.errstate(invalid="ignore", divide="ignore"):
         # lens area of two circles at distance d (where they cut each other)

@@ -37,7 +37,8 @@ log = logging.getLogger(__name__)
 CRATER_LAYOUT = "crater-centernet-v1"
 CRATER_MODEL = "craters_orbital.onnx"
 SIZE_MULTIPLE = 32  # the network's input sides must be multiples of its coarsest stride
-CRATER_TILE_OVERLAP_PX = 128  # > the largest crater a level keeps plus the network's reach
+MIN_LEVEL_PX = 32  # no pyramid level smaller than this a side
+CRATER_TILE_OVERLAP_PX = 96  # > the largest crater a level keeps plus the network's reach
 
 
 def default_crater_model_path() -> Path:
@@ -51,8 +52,8 @@ class CraterConfig:
 
     min_diameter_px: float = 4.0
     max_diameter_px: float = 256.0
-    band_px: tuple[float, float] = (11.0, 26.0)  # kept at the intermediate levels
-    top_max_px: float = 48.0  # largest diameter the coarsest level keeps
+    band_px: tuple[float, float] = (6.0, 13.0)  # kept at the intermediate levels
+    top_max_px: float = 24.0  # largest diameter the coarsest level keeps
     nms_iou: float = 0.5  # disc IoU above which the weaker of two detections goes
     nodata: float | None = None  # pixel value outside the image footprint (NaN always is)
 
@@ -101,9 +102,9 @@ class CraterDetector:
 
     def levels(self, shape_hw: tuple[int, int]) -> int:
         """Pyramid levels used for an image of ``shape_hw``: enough for ``max_diameter_px`` at the
-        coarsest level's ``top_max_px``, and no level under 2 ``SIZE_MULTIPLE`` px a side."""
+        coarsest level's ``top_max_px``, and no level under ``MIN_LEVEL_PX`` a side."""
         need = 1 + max(int(np.ceil(np.log2(self.crater.max_diameter_px / self.crater.top_max_px))), 0)
-        fit = 1 + max(int(np.floor(np.log2(min(shape_hw) / (2 * SIZE_MULTIPLE)))), 0)
+        fit = 1 + max(int(np.floor(np.log2(min(shape_hw) / MIN_LEVEL_PX))), 0)
         return max(min(need, fit), 1)
 
     def band(self, level: int, n_levels: int) -> tuple[float, float]:
