@@ -35,6 +35,7 @@ TRAIN_DIAMETER_PX = (3.5, 32.0)  # targets in a crop; outside this range a crate
 SIGMA_PER_DIAMETER = 0.1  # heatmap Gaussian sigma / crater diameter
 SIZE_WEIGHT = 1.0  # L1 weight of log diameter (relative to the offsets')
 INPUT_SIZE_WH = (640, 640)  # the tile the runtime cuts large images into
+VAL_IMAGE_PX = 512  # side of the validation images the score threshold is chosen on
 
 
 def _render_one(args: tuple[int, str, int]) -> dict:
@@ -179,14 +180,14 @@ def run(args) -> int:
 
 def calibrate_crater_threshold(path: Path, n: int, seed: int) -> float:
     """Pick the operating score threshold of the crater model at ``path`` on ``n`` rendered
-    ``val`` images (the widest margin to the precision and recall goals for craters of 8 px and
+    ``val`` images of ``VAL_IMAGE_PX`` (the widest margin to the precision and recall goals for craters of 8 px and
     more, ``fgslam.bench.detect_craters.GOAL``) and store it in its metadata."""
     from fgslam.bench.detect_craters import GOAL, MIN_GOAL_PX, collect, pick_crater_threshold
     from fgslam.train.detector import set_metadata
     from reloc.detector import CraterDetector, DetectorConfig
 
     det = CraterDetector(path, config=DetectorConfig(score_threshold=0.05))
-    dets, labels = collect(det, n, seed, "val")
+    dets, labels, _ = collect(det, n, seed, "val", VAL_IMAGE_PX)
     thr = pick_crater_threshold(dets, labels, GOAL["precision"], GOAL["recall"], MIN_GOAL_PX)
     set_metadata(path, score_threshold=f"{thr:.4f}")
     return thr
