@@ -16,8 +16,8 @@ noise, column striping and CCD-channel gain seams (HiRISE-like), quantisation to
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -37,14 +37,14 @@ class CraterLabels:
     ignore: np.ndarray
 
     def __len__(self) -> int:
-        return int(len(self.diameters_px))
+        return len(self.diameters_px)
 
     @property
     def positives(self) -> tuple[np.ndarray, np.ndarray]:
         """(centres (P, 2), diameters (P,)) of the craters that count as ground truth."""
         return self.centres_px[~self.ignore], self.diameters_px[~self.ignore]
 
-    def scaled(self, factor: float, offset_px: tuple[float, float] = (0.0, 0.0)) -> "CraterLabels":
+    def scaled(self, factor: float, offset_px: tuple[float, float] = (0.0, 0.0)) -> CraterLabels:
         """Labels of the image cropped at ``offset_px`` (column, row) and then resized by ``factor``."""
         c = (self.centres_px - np.asarray(offset_px, float)) * factor
         return CraterLabels(c, self.diameters_px * factor, self.ignore.copy())
@@ -90,7 +90,7 @@ def orbital_sensor(grey: np.ndarray, rng: np.random.Generator, var: SensorVariat
         img = (1.0 - h) * img + h * float(img.mean())
     img = cv2.GaussianBlur(img, (0, 0), rng.uniform(*var.blur_sigma_px))
     img = img * np.float32(rng.uniform(*var.mean_level) / max(float(img.mean()), 1e-3))
-    H, W = img.shape
+    W = img.shape[1]
     if rng.random() < var.stripes_p:
         img = img * (1.0 + rng.uniform(0.001, 0.01) * rng.standard_normal(W, dtype=np.float32))[None, :]
     if rng.random() < var.seams_p:
@@ -110,7 +110,7 @@ def orbital_sensor(grey: np.ndarray, rng: np.random.Generator, var: SensorVariat
     out = np.rint(img * 255.0).astype(np.uint8)
     if rng.random() < var.jpeg_p:
         q = int(rng.integers(var.jpeg_quality[0], var.jpeg_quality[1] + 1))
-        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, q])
+        _, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, q])
         out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     return out
 

@@ -16,12 +16,21 @@ a smooth bowl rather than a few facets of the heightmap.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from sim.craters import INFLUENCE_RADIUS, CraterSFD, Craters, EjectaConfig, ejecta_blocks, sample_craters, stamp_craters
+from sim.craters import (
+    INFLUENCE_RADIUS,
+    Craters,
+    CraterSFD,
+    EjectaConfig,
+    ejecta_blocks,
+    sample_craters,
+    stamp_craters,
+)
 from sim.render import Appearance, Lighting
 from sim.render.shading import Shader, cos_to_sun, grey_levels, light
 from sim.rocks import Rocks
@@ -117,7 +126,7 @@ def scene_craters(extent: tuple[float, float, float, float], gsd_m: float, sfd: 
     the extent grown by each band's influence radius; bands above 24 px scaled by ``boost``."""
     xmin, xmax, ymin, ymax = extent
     parts, base = [], 0
-    for lo, hi in zip(SIZE_BANDS_PX[:-1], SIZE_BANDS_PX[1:]):
+    for lo, hi in pairwise(SIZE_BANDS_PX):
         hi = min(hi, d_max_px)
         if hi <= lo:
             break

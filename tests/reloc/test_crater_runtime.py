@@ -26,7 +26,7 @@ from reloc.detector.image import half, normalised_grey
 from reloc.errors import RelocError
 
 onnx = pytest.importorskip("onnx")
-from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+from onnx import TensorProto, helper, numpy_helper
 
 META = {"fgslam_layout": "crater-centernet-v1", "stride": "2", "input_size": "128,128", "score_threshold": "0.5"}
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.craters import Craters, stamp_craters
 from sim.crater_datasets import CraterSetConfig, crater_labels, crater_samples, orbital_sensor
 from sim.crater_scene import SceneVariation, render_crater_scene, shade_heightfield, sun_shadows
+from sim.craters import Craters, stamp_craters
 from sim.render import Appearance, Lighting, Renderer
 from sim.rocks import Rocks
 from sim.terrain import Heightmap

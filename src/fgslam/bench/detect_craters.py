@@ -19,7 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fgslam.bench.detect import IOUS, _one_cv_thread, _timed, average_precision, goal_margin_threshold
+from fgslam.bench.detect import (
+    IOUS,
+    _one_cv_thread,
+    _timed,
+    average_precision,
+    goal_margin_threshold,
+)
 from reloc.detector.circles import CraterDetections, circle_iou_pairs
 
 GOAL = {"precision": 0.9, "recall": 0.8, "centre_error_d": 0.10, "diameter_error": 0.10, "tile_s": 0.050}

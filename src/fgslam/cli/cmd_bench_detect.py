@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -20,11 +19,11 @@ def bench_detect_cmd(
     crater_images: int = typer.Option(12, "--crater-images", help="Held-out cratered images (--crater-image-px square)."),
     crater_image_px: int = typer.Option(1024, "--crater-image-px", help="Side of the held-out cratered images, px."),
     seed: int = typer.Option(0, "--seed", help="Seed of the held-out worlds (eval stream)."),
-    nadir_model: Optional[Path] = typer.Option(None, "--nadir-model", help="Nadir ONNX model (default: shipped)."),
-    rover_model: Optional[Path] = typer.Option(None, "--rover-model", help="Rover ONNX model (default: shipped)."),
-    crater_model: Optional[Path] = typer.Option(None, "--crater-model", help="Crater ONNX model (default: shipped)."),
+    nadir_model: Path | None = typer.Option(None, "--nadir-model", help="Nadir ONNX model (default: shipped)."),
+    rover_model: Path | None = typer.Option(None, "--rover-model", help="Rover ONNX model (default: shipped)."),
+    crater_model: Path | None = typer.Option(None, "--crater-model", help="Crater ONNX model (default: shipped)."),
     quick: bool = typer.Option(False, "--quick", help="Few images (a smoke run)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Directory for results.json and table.md."),
+    out: Path | None = typer.Option(None, "--out", help="Directory for results.json and table.md."),
 ) -> None:
     """Precision, recall, mAP50, mAP50-95 of the detectors of a landmark kind (craters also centre
     and diameter errors), inference and render timings."""
@@ -38,7 +37,13 @@ def bench_detect_cmd(
         raise InputFileError(f"--landmark must be one of {', '.join(LANDMARKS)}, got {landmark!r}")
     err = Console(stderr=True)
     if landmark == "crater":
-        from fgslam.bench.detect_craters import CraterBenchConfig, crater_markdown, crater_rows, crater_timing_rows, run_crater_bench
+        from fgslam.bench.detect_craters import (
+            CraterBenchConfig,
+            crater_markdown,
+            crater_rows,
+            crater_timing_rows,
+            run_crater_bench,
+        )
 
         if crater_images < 1 or crater_image_px < 64:
             raise InputFileError(f"--crater-images must be >= 1 and --crater-image-px >= 64, got {crater_images}, {crater_image_px}")
@@ -52,7 +57,13 @@ def bench_detect_cmd(
         write_results(out, res, crater_markdown(res), err)
         return
 
-    from fgslam.bench.detect import DetectBenchConfig, markdown, result_rows, run_detect_bench, timing_rows
+    from fgslam.bench.detect import (
+        DetectBenchConfig,
+        markdown,
+        result_rows,
+        run_detect_bench,
+        timing_rows,
+    )
 
     cfg = DetectBenchConfig(
         nadir_images=3 if quick else nadir_images, rover_images=4 if quick else rover_images, seed=seed,

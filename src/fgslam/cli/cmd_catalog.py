@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -69,9 +68,9 @@ def catalog_cmd(
     origin: tuple[float, float] = typer.Option((0.0, 0.0), "--origin", help="World X Y (m) of the image's top-left corner (row 0 is north)."),
     out: Path = typer.Option(..., "--out", help="Catalog CSV to write (x,y,size,score; size = rock or rim diameter, m)."),
     landmark: str = typer.Option("rock", "--landmark", help="Landmark kind to detect: rock or crater."),
-    model: Optional[Path] = typer.Option(None, "--model", help="ONNX detector (default: the shipped model of the landmark kind; Ultralytics YOLO exports work for rocks)."),
-    score_threshold: Optional[float] = typer.Option(None, "--score-threshold", help="Minimum detector score (default: the model's)."),
-    nodata: Optional[float] = typer.Option(None, "--nodata", help="Pixel value outside the image footprint (craters; NaN always is)."),
+    model: Path | None = typer.Option(None, "--model", help="ONNX detector (default: the shipped model of the landmark kind; Ultralytics YOLO exports work for rocks)."),
+    score_threshold: float | None = typer.Option(None, "--score-threshold", help="Minimum detector score (default: the model's)."),
+    nodata: float | None = typer.Option(None, "--nodata", help="Pixel value outside the image footprint (craters; NaN always is)."),
     threads: int = typer.Option(1, "--threads", help="onnxruntime threads."),
 ) -> None:
     """Detect rocks or craters in a nadir IMAGE and write their world positions and diameters as a catalog."""
@@ -81,7 +80,12 @@ def catalog_cmd(
 
     from fgslam.errors import InputFileError
     from fgslam.io.catalog_csv import write_catalog_csv
-    from reloc.detector import DetectorConfig, catalog_from_detections, orbital_detector, orbital_landmarks
+    from reloc.detector import (
+        DetectorConfig,
+        catalog_from_detections,
+        orbital_detector,
+        orbital_landmarks,
+    )
 
     if landmark not in orbital_landmarks():
         raise InputFileError(f"--landmark must be one of {', '.join(orbital_landmarks())}, got {landmark!r}")

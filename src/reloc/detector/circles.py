@@ -19,7 +19,7 @@ class CraterDetections:
     score: np.ndarray
 
     @staticmethod
-    def empty() -> "CraterDetections":
+    def empty() -> CraterDetections:
         return CraterDetections(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32))
 
     def __len__(self) -> int:
@@ -30,7 +30,7 @@ class CraterDetections:
         """Rim diameters (N,) px (the size a catalog records)."""
         return self.diameters_px
 
-    def select(self, keep: np.ndarray) -> "CraterDetections":
+    def select(self, keep: np.ndarray) -> CraterDetections:
         """The detections picked by a boolean or index array."""
         return CraterDetections(self.centers_px[keep], self.diameters_px[keep], self.score[keep])
 

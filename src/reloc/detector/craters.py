@@ -3,7 +3,7 @@ over an image pyramid, tiled, for images of any size and bit depth.
 
 ``CraterDetector().detect(image)`` -> :class:`CraterDetections` (centres and rim diameters in
 image pixels, scores). The model (layout ``crater-centernet-v1``) is trained on craters of a
-few to about sixty pixels; craters from ``min_diameter_px`` (4) to ``max_diameter_px`` (256)
+few to about thirty pixels; craters from ``min_diameter_px`` (4) to ``max_diameter_px`` (256)
 are found on an image pyramid (:mod:`reloc.detector.image`): level k is the image halved k
 times, and keeps the craters whose diameter in its pixels falls in ``band_px`` (the finest level
 everything below the band, the coarsest everything above it up to ``top_max_px``). The bands of
@@ -82,7 +82,7 @@ class CraterDetector:
         if self.stride not in (1, 2, 4, 8) or len(self.input_size_wh) != 2 or min(self.input_size_wh) < SIZE_MULTIPLE:
             raise DetectorError(f"detector model {self.path}: unusable stride {self.stride} or input size {self.input_size_wh}")
         self.score_threshold = thr
-        self.input_name, self.channels, shape = image_input(self.session, self.path)
+        self.input_name, self.channels, _ = image_input(self.session, self.path)
         if self.channels != 1:
             raise DetectorError(f"detector model {self.path}: a crater model takes 1 (grey) channel, not {self.channels}")
         self.tile = True if config.tile is None else bool(config.tile)
