@@ -297,5 +297,5 @@ def test_catalog_errors_name_the_option_and_write_no_unusable_file(tmp_path, cap
     assert "--origin must be two finite numbers" in capsys.readouterr().err
     assert main(["catalog", str(img), "--gsd", "0.05", "--out", str(tmp_path / "c.csv")]) == 2
     err = capsys.readouterr().err
-    assert "0 rock(s) detected, a catalog needs at least 3" in err and not (tmp_path / "c.csv").exists()
+    assert "0 rocks detected, a catalog needs at least 3" in err and not (tmp_path / "c.csv").exists()
     assert os.listdir(tmp_path) == ["blank.png"]

@@ -63,3 +63,20 @@ def test_flip_tta_export_is_mirror_equivariant(tmp_path):
     mirrored[:, 1] = 1.0 - mirrored[:, 1]
     assert y.shape == (1, 5, 32, 48)
     assert np.allclose(y_m, mirrored, atol=1e-5)
+
+
+def test_train_crater_export_and_load(tmp_path):
+    """The crater kind: render a scene, train a few steps, export, load with the crater runtime."""
+    from fgslam.train.detector import main
+    from reloc.detector import CraterDetector
+
+    out = tmp_path / "crater.onnx"
+    cache = tmp_path / "crater.npz"
+    args = ["--kind", "crater", "--images", "2", "--iters", "3", "--batch", "2", "--crop", "96",
+            "--val-images", "0", "--cache", str(cache), "--out", str(out)]
+    assert main(args) == 0
+    assert cache.is_file() and out.stat().st_size < 5e6
+    det = CraterDetector(out)
+    assert det.stride == 2 and det.input_size_wh == (640, 640)
+    d = det.detect(np.full((200, 300), 128, np.uint8))
+    assert d.centers_px.shape[1] == 2 and len(d.diameters_px) == len(d)

@@ -139,7 +139,12 @@ def pick_threshold_for_goal(dets: list, labels: list, goal_precision: float, goa
         m = match_image(d.boxes_xyxy, d.score, lab.boxes_xyxy[~lab.ignore], lab.boxes_xyxy[lab.ignore], 0.5)
         scores.append(d.score[m >= 0])
         tps.append(m[m >= 0])
-    s, t = np.concatenate(scores), np.concatenate(tps)
+    return goal_margin_threshold(np.concatenate(scores), np.concatenate(tps), n_gt, goal_precision, goal_recall)
+
+
+def goal_margin_threshold(s: np.ndarray, t: np.ndarray, n_gt: int, goal_precision: float, goal_recall: float) -> float:
+    """The score threshold maximising min(precision - goal, recall - goal) over counted detections
+    with scores ``s`` (N,) and true-positive flags ``t`` (N,) against ``n_gt`` true objects."""
     if len(s) == 0:
         return 0.3
     order = np.argsort(-s, kind="stable")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -119,77 +120,101 @@ def save_weights(net, path: Path) -> None:
     torch.save({"arch": dict(net.arch), "state": net.state_dict()}, path)
 
 
-def train(kind: str, images, pos, ign, *, iters: int, batch: int, crop: int, lr: float, seed: int,
-          device: str, init: Path | None = None, budget_s: float | None = None, log_every: int = 50,
-          arch: dict | None = None):
-    """Train a :class:`RockNet` (``arch``: its keyword arguments; default the kind's stride) for
-    ``iters`` steps, or for ``budget_s`` seconds (learning rate on the elapsed share of it);
-    returns the model (eval mode, on CPU) and the loss history. ``init`` starts from saved weights
-    (their architecture wins over ``arch``)."""
+def fit(net, next_batch, *, iters: int, lr: float, device: str, budget_s: float | None = None,
+        log_every: int = 50, size_weight: float = 0.5, tag: str = ""):
+    """Optimise ``net`` with AdamW on batches ``next_batch()`` -> (x (B, 1, H, W) float32, targets
+    of :func:`fgslam.train.targets.centre_targets` stacked per key) for ``iters`` steps, or for
+    ``budget_s`` seconds (learning rate on the elapsed share of it: a shared machine's step time
+    drifts); linear warm-up, then cosine to 1 %. Returns (net in eval mode on CPU, loss history)."""
     import torch
 
-    from fgslam.train.model import RockNet
-    from fgslam.train.targets import detector_loss, make_targets
+    from fgslam.train.targets import detector_loss
 
-    torch.manual_seed(seed)
-    rng = np.random.default_rng([seed, 5])
-    net = load_weights(init) if init is not None else RockNet(**{"out_stride": OUT_STRIDE[kind], **(arch or {})})
-    stride = net.out_stride
     net = net.to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     warm = max(iters // 20, 1) if budget_s is None else 20
 
-    def lr_factor(k: int, progress: float) -> float:  # linear warm-up, then cosine to 1 %
+    def lr_factor(k: int, progress: float) -> float:
         return min((k + 1) / warm, 0.5 * (1 + np.cos(np.pi * min(progress, 1.0)))) + 0.01
 
     history = []
     t0 = time.perf_counter()
     net.train()
     it = 0
-    # with a time budget the schedule follows the elapsed share of it (a shared machine's step
-    # time drifts), and training stops when it is spent
     while (it < iters) if budget_s is None else (time.perf_counter() - t0 < budget_s):
         progress = it / iters if budget_s is None else (time.perf_counter() - t0) / budget_s
         for group in opt.param_groups:
             group["lr"] = lr * lr_factor(it, progress)
-        xs, tg = [], []
-        for _ in range(batch):
-            k = int(rng.integers(len(images)))
-            im, p, g = _crop(images[k], pos[k], ign[k], crop, rng, rotate=kind == "nadir")
-            xs.append(im)
-            tg.append(make_targets(p, g, crop, crop, stride))
-        x = torch.from_numpy(np.stack(xs)[:, None].astype(np.float32)).to(device)
-        t = {key: torch.from_numpy(np.stack([d[key] for d in tg])).to(device) for key in tg[0]}
-        out = net(x)
-        loss, parts = detector_loss(out, t["heat"], t["weight"], t["reg"], t["mask"])
+        xs, tg = next_batch()
+        x = torch.from_numpy(xs).to(device)
+        t = {key: torch.from_numpy(v).to(device) for key, v in tg.items()}
+        loss, parts = detector_loss(net(x), t["heat"], t["weight"], t["reg"], t["mask"], size_weight)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
         opt.step()
         history.append(float(loss.detach()))
         if (it + 1) % log_every == 0 or it == 0:
-            log.info("%s iter %d loss %.3f (heat %.3f off %.3f size %.3f) lr %.2g, %.0f s", kind, it + 1, history[-1],
+            log.info("%s iter %d loss %.3f (heat %.3f off %.3f size %.3f) lr %.2g, %.0f s", tag, it + 1, history[-1],
                      parts["heat"], parts["off"], parts["size"], opt.param_groups[0]["lr"], time.perf_counter() - t0)
         it += 1
     return net.cpu().eval(), history
 
 
-def export_onnx(net, kind: str, path: Path, info: dict, flip_tta: bool = False) -> None:
-    """Export ``net`` to ``path`` (opset 17, dynamic H/W) with the runtime's metadata; with
-    ``flip_tta`` the graph averages the outputs of the image and its mirror image."""
+def stack_targets(targets: list[dict]) -> dict[str, np.ndarray]:
+    """Per-image target dicts stacked into batch arrays."""
+    return {key: np.stack([d[key] for d in targets]) for key in targets[0]}
+
+
+def train(kind: str, images, pos, ign, *, iters: int, batch: int, crop: int, lr: float, seed: int,
+          device: str, init: Path | None = None, budget_s: float | None = None, log_every: int = 50,
+          arch: dict | None = None):
+    """Train a :class:`RockNet` (``arch``: its keyword arguments; default the kind's stride) for
+    ``iters`` steps, or for ``budget_s`` seconds (see :func:`fit`); returns the model (eval mode,
+    on CPU) and the loss history. ``init`` starts from saved weights (their architecture wins
+    over ``arch``)."""
+    import torch
+
+    from fgslam.train.model import RockNet
+    from fgslam.train.targets import make_targets
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng([seed, 5])
+    net = load_weights(init) if init is not None else RockNet(**{"out_stride": OUT_STRIDE[kind], **(arch or {})})
+    stride = net.out_stride
+
+    def next_batch():
+        xs, tg = [], []
+        for _ in range(batch):
+            k = int(rng.integers(len(images)))
+            im, p, g = _crop(images[k], pos[k], ign[k], crop, rng, rotate=kind == "nadir")
+            xs.append(im)
+            tg.append(make_targets(p, g, crop, crop, stride))
+        return np.stack(xs)[:, None].astype(np.float32), stack_targets(tg)
+
+    return fit(net, next_batch, iters=iters, lr=lr, device=device, budget_s=budget_s, log_every=log_every, tag=kind)
+
+
+def export_onnx(net, kind: str, path: Path, info: dict, flip_tta: bool = False, *,
+                input_size_wh: tuple[int, int] | None = None, extra_meta: dict[str, str] | None = None) -> None:
+    """Export ``net`` to ``path`` (opset 17, dynamic H/W) with the runtime's metadata (layout
+    ``centernet-v1`` for rocks, ``crater-centernet-v1`` for the crater kind, plus ``extra_meta``);
+    with ``flip_tta`` the graph averages the outputs of the image and its mirror image."""
     import onnx
     import torch
 
     from fgslam.train.model import ExportWrapper
 
-    W, H = INPUT_SIZE[kind]
+    W, H = input_size_wh or INPUT_SIZE[kind]
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.onnx.export(ExportWrapper(net, flip_tta).eval(), (torch.zeros(1, 1, H, W),), str(path), dynamo=False,
                       input_names=["images"], output_names=["centernet"], opset_version=17,
                       dynamic_axes={"images": {2: "height", 3: "width"}, "centernet": {2: "h_out", 3: "w_out"}})
     model = onnx.load(str(path))
-    meta = {"fgslam_layout": "centernet-v1", "stride": str(net.out_stride), "input_size": f"{W},{H}", "kind": kind,
-            "class_names": "rock", "flip_tta": str(int(flip_tta)), "train_info": json.dumps(info)}
+    crater = kind == "crater"
+    meta = {"fgslam_layout": "crater-centernet-v1" if crater else "centernet-v1", "stride": str(net.out_stride),
+            "input_size": f"{W},{H}", "kind": kind, "class_names": "crater" if crater else "rock",
+            "flip_tta": str(int(flip_tta)), "train_info": json.dumps(info), **(extra_meta or {})}
     del model.metadata_props[:]
     for k, v in meta.items():
         model.metadata_props.add(key=k, value=v)
@@ -238,10 +263,22 @@ def _calibrate(args: argparse.Namespace) -> None:
     log.info("score threshold %.3f (%s on %d validation images)", thr, rule, args.val_images)
 
 
+def _crater_main(args: argparse.Namespace) -> int:
+    from fgslam.train.craters import calibrate_crater_threshold, run
+
+    if not args.calibrate_only:
+        run(args)
+    if args.render_only or args.val_images <= 0:
+        return 0
+    thr = calibrate_crater_threshold(args.out, args.val_images, args.seed)
+    log.info("crater score threshold %.3f (goal margin on %d validation images)", thr, args.val_images)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line of ``python -m fgslam.train``."""
     ap = argparse.ArgumentParser(prog="python -m fgslam.train", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--kind", choices=("nadir", "rover"), required=True)
+    ap.add_argument("--kind", choices=("nadir", "rover", "crater"), required=True)
     ap.add_argument("--images", type=int, default=160, help="rendered training images")
     ap.add_argument("--iters", type=int, default=3000)
     ap.add_argument("--batch", type=int, default=16)
@@ -262,9 +299,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fine-width", type=int, default=None, help="channels of the stride-2 level (default: nadir 12, rover 16)")
     ap.add_argument("--flip-tta", type=int, choices=(0, 1), default=None, help="export with mirror test-time augmentation (default: 0)")
     ap.add_argument("--weights", type=Path, default=None, help="also save the trained weights (.pt) here")
+    ap.add_argument("--workers", type=int, default=1, help="processes rendering the crater scenes")
     ap.add_argument("--out", type=Path, required=True, help="ONNX file to write")
     args = ap.parse_args(argv)
+    args.command = "python -m fgslam.train " + " ".join(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    if args.kind == "crater":
+        return _crater_main(args)
     if args.calibrate_only:
         _calibrate(args)
         return 0

@@ -17,7 +17,7 @@ class Detections:
     class_id: np.ndarray
 
     @staticmethod
-    def empty() -> "Detections":
+    def empty() -> Detections:
         return Detections(np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64))
 
     def __len__(self) -> int:
@@ -35,7 +35,7 @@ class Detections:
         b = self.boxes_xyxy
         return np.column_stack([b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]])
 
-    def select(self, keep: np.ndarray) -> "Detections":
+    def select(self, keep: np.ndarray) -> Detections:
         """The detections picked by a boolean or index array."""
         return Detections(self.boxes_xyxy[keep], self.score[keep], self.class_id[keep])
 

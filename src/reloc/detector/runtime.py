@@ -25,7 +25,8 @@ import numpy as np
 
 from reloc.detector.boxes import Detections, nms
 from reloc.detector.decode import decode_centernet, decode_yolo, yolo_channels_first
-from reloc.errors import RelocError
+from reloc.detector.errors import DetectorError
+from reloc.detector.session import image_input, open_session, run_session
 
 log = logging.getLogger(__name__)
 
@@ -33,10 +34,7 @@ KINDS = ("nadir", "rover")
 CENTERNET = "centernet-v1"
 YOLO = "yolo"
 PAD_VALUE = 114
-
-
-class DetectorError(RelocError):
-    """A detector model file is missing, corrupt or of an unsupported layout, or an image is bad."""
+ROCK_TILE_OVERLAP_PX = 64
 
 
 def default_model_path(kind: str) -> Path:
@@ -54,7 +52,7 @@ class DetectorConfig:
     iou_threshold: float = 0.5
     max_detections: int = 1000
     tile: bool | None = None  # None: tile nadir images, letterbox rover images
-    tile_overlap_px: int = 64
+    tile_overlap_px: int | None = None  # None: the detector's own (rocks 64 px, craters 128 px)
     threads: int = 1  # onnxruntime intra-op threads
     input_size_wh: tuple[int, int] | None = None  # for models with dynamic H/W and no metadata
 
@@ -68,19 +66,7 @@ class RockDetector:
         self.kind = kind
         self.config = config
         self.path = Path(model_path) if model_path is not None else default_model_path(kind)
-        if not self.path.is_file():
-            raise DetectorError(f"detector model {self.path}: file not found")
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(int(config.threads), 1)
-        opts.inter_op_num_threads = 1
-        opts.log_severity_level = 3
-        try:
-            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:  # onnxruntime raises its own exception types for bad files
-            raise DetectorError(f"detector model {self.path}: not a loadable ONNX model ({exc})") from exc
-        meta = self.session.get_modelmeta().custom_metadata_map
+        self.session, meta = open_session(self.path, config.threads)
         self.layout = CENTERNET if meta.get("fgslam_layout") == CENTERNET else YOLO
         self.stride = int(meta.get("stride", 4))
         self._check_io(meta)
@@ -91,18 +77,8 @@ class RockDetector:
         log.debug("loaded %s detector %s (%s, input %s)", kind, self.path, self.layout, self.input_size_wh)
 
     def _check_io(self, meta: dict) -> None:
-        ins, outs = self.session.get_inputs(), self.session.get_outputs()
-        if len(ins) != 1:
-            raise DetectorError(f"detector model {self.path}: expected 1 input, found {len(ins)}")
-        shape = ins[0].shape
-        if len(shape) != 4:
-            raise DetectorError(f"detector model {self.path}: input {ins[0].name!r} has shape {shape}, expected N x C x H x W")
-        if shape[1] not in (1, 3):
-            raise DetectorError(f"detector model {self.path}: input has {shape[1]} channels, expected 1 (grey) or 3 (RGB)")
-        if "float" not in ins[0].type:
-            raise DetectorError(f"detector model {self.path}: input type {ins[0].type}, expected a float tensor")
-        self.input_name = ins[0].name
-        self.channels = int(shape[1])
+        outs = self.session.get_outputs()
+        self.input_name, self.channels, shape = image_input(self.session, self.path)
         fixed = isinstance(shape[2], int) and isinstance(shape[3], int)
         if fixed:
             self.input_size_wh = (int(shape[3]), int(shape[2]))
@@ -117,6 +93,8 @@ class RockDetector:
         if len(outs) < 1:
             raise DetectorError(f"detector model {self.path}: no output")
         rank = len(outs[0].shape)
+        if meta.get("fgslam_layout") == "crater-centernet-v1":
+            raise DetectorError(f"detector model {self.path}: a crater model (layout crater-centernet-v1), not a rock detector")
         if self.layout == CENTERNET and rank != 4 or self.layout == YOLO and rank != 3:
             raise DetectorError(
                 f"detector model {self.path}: output {outs[0].name!r} of shape {outs[0].shape} is neither the "
@@ -140,10 +118,7 @@ class RockDetector:
                 raise DetectorError(f"detector model {self.path}: YOLO output shape {out.shape} has no class scores")
 
     def _run(self, x: np.ndarray) -> np.ndarray:
-        try:
-            return self.session.run(None, {self.input_name: x})[0]
-        except Exception as exc:
-            raise DetectorError(f"detector model {self.path}: inference failed on input {x.shape} ({exc})") from exc
+        return run_session(self.session, self.path, self.input_name, x)
 
     def _to_model_channels(self, image: np.ndarray) -> np.ndarray:
         img = np.asarray(image)
@@ -206,7 +181,8 @@ class RockDetector:
     def _detect_tiled(self, img: np.ndarray):
         W, H = self.input_size_wh
         h, w = img.shape[:2]
-        ov = int(min(self.config.tile_overlap_px, min(W, H) // 4))  # never more than a quarter tile
+        ov_px = ROCK_TILE_OVERLAP_PX if self.config.tile_overlap_px is None else self.config.tile_overlap_px
+        ov = int(min(ov_px, min(W, H) // 4))  # never more than a quarter tile
         xs = _tile_starts(w, W, ov)
         ys = _tile_starts(h, H, ov)
         all_b, all_s, all_c = [], [], []
