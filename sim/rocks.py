@@ -62,6 +62,46 @@ class Rocks:
             triangle_rock=np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64),
         )
 
+    @staticmethod
+    def from_vertex_blocks(vertices_m: np.ndarray, faces: np.ndarray, ids: np.ndarray,
+                           size_m: np.ndarray | None = None) -> Rocks:
+        """Rocks that share one mesh topology: ``vertices_m`` (R, V, 3) world metres, ``faces``
+        (F, 3) indices into each rock's V vertices, ``ids`` (R,); vectorised :meth:`from_meshes`.
+        ``size_m`` (R,): the rocks' caliper diameters when already known."""
+        v = np.asarray(vertices_m, dtype=float)
+        n = len(v)
+        if n == 0:
+            return Rocks.from_meshes([])
+        lo, hi = v.min(axis=1), v.max(axis=1)
+        offsets = (np.arange(n, dtype=np.int64) * v.shape[1])[:, None, None]
+        return Rocks(
+            xyz_m=0.5 * (lo + hi),
+            size_m=caliper_diameters(v[:, :, :2]) if size_m is None else np.asarray(size_m, dtype=float),
+            id=np.asarray(ids, dtype=np.int64),
+            height_m=hi[:, 2] - lo[:, 2],
+            vertices_m=v.reshape(-1, 3),
+            triangles=(np.asarray(faces, dtype=np.int64)[None] + offsets).reshape(-1, 3).astype(np.int32),
+            triangle_rock=np.repeat(np.arange(n, dtype=np.int64), len(faces)),
+        )
+
+    @staticmethod
+    def concat(parts: list[Rocks]) -> Rocks:
+        """One :class:`Rocks` holding ``parts`` in order (meshes included)."""
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return Rocks.from_meshes([])
+        v_off = np.cumsum([0] + [len(p.vertices_m) for p in parts[:-1]])
+        r_off = np.cumsum([0] + [len(p) for p in parts[:-1]])
+        return Rocks(
+            xyz_m=np.vstack([p.xyz_m for p in parts]),
+            size_m=np.concatenate([p.size_m for p in parts]),
+            id=np.concatenate([p.id for p in parts]),
+            height_m=np.concatenate([p.height_m for p in parts]),
+            vertices_m=np.vstack([p.vertices_m for p in parts]),
+            triangles=np.vstack([p.triangles.astype(np.int64) + o for p, o in zip(parts, v_off)]).astype(np.int32),
+            triangle_rock=np.concatenate([p.triangle_rock + o for p, o in zip(parts, r_off)]),
+        )
+
     def subset(self, keep: np.ndarray) -> Rocks:
         """The rocks selected by boolean/index array ``keep`` (meshes included)."""
         idx = np.arange(len(self))[keep]
@@ -78,6 +118,13 @@ def caliper_diameter(xy: np.ndarray, n_dir: int = 8) -> float:
     ang = np.arange(n_dir) * np.pi / n_dir
     proj = xy @ np.stack([np.cos(ang), np.sin(ang)])
     return float(np.mean(proj.max(axis=0) - proj.min(axis=0)))
+
+
+def caliper_diameters(xy: np.ndarray, n_dir: int = 8) -> np.ndarray:
+    """Mean caliper widths (R,) of R point sets ``xy`` (R, P, 2) over ``n_dir`` directions."""
+    ang = np.arange(n_dir) * np.pi / n_dir
+    proj = xy @ np.stack([np.cos(ang), np.sin(ang)])
+    return np.mean(proj.max(axis=1) - proj.min(axis=1), axis=1)
 
 
 @cache
@@ -150,3 +197,56 @@ def generate_rocks(
         v = v + np.array([xy[k, 0], xy[k, 1], ground - v[:, 2].min() - embed_fraction * height])
         meshes.append((v, unit_f))
     return Rocks.from_meshes(meshes)
+
+
+@dataclass(frozen=True)
+class RockShapes:
+    """Vectorised rock meshes: ``vertices_m`` (R, V, 3) world metres sharing ``faces`` (F, 3); the
+    underlying ellipsoids' ``semi_m`` (R, 3) semi-axes and ``yaw_rad`` (R,) and the world height of
+    their centres ``z_centre_m`` (R,) (the vertices are bumped versions of them); the meshes'
+    bounding-box centres ``bbox_centre_m`` (R, 3) and heights ``height_m`` (R,)."""
+
+    vertices_m: np.ndarray
+    faces: np.ndarray
+    semi_m: np.ndarray
+    yaw_rad: np.ndarray
+    z_centre_m: np.ndarray
+    bbox_centre_m: np.ndarray
+    height_m: np.ndarray
+
+
+def rock_shapes(
+    xy_m: np.ndarray, diameter_m: np.ndarray, rng: np.random.Generator, ground, *,
+    embed_fraction: float = 0.15, subdivisions: int = 1,
+) -> RockShapes:
+    """Vectorised rock meshes (the shape model of :func:`generate_rocks`): a randomly perturbed
+    squashed icosphere per rock whose underlying ellipse has a mean caliper width of
+    ``diameter_m``, resting on the ground given by ``ground(xy (N, 2)) -> z (N,)`` with
+    ``embed_fraction`` of its height below the lowest ground under its footprint."""
+    unit_v, unit_f = icosphere(subdivisions)
+    d = np.asarray(diameter_m, dtype=float)
+    xy = np.reshape(np.asarray(xy_m, dtype=float), (-1, 2))
+    n = len(d)
+    if n == 0:
+        return RockShapes(np.zeros((0, len(unit_v), 3)), unit_f, np.zeros((0, 3)), np.zeros(0), np.zeros(0),
+                          np.zeros((0, 3)), np.zeros(0))
+    aspect_y, aspect_z = rng.uniform(0.7, 1.0, n), rng.uniform(0.35, 0.7, n)
+    bumps = 1.0 + 0.12 * rng.standard_normal((n, len(unit_v)))
+    yaw = rng.uniform(0.0, 2.0 * np.pi, n)
+    # mean caliper width of an ellipse of semi-axes (1, b): the mean of 2 sqrt(cos^2 + b^2 sin^2)
+    ang = np.arange(8) * np.pi / 8
+    mean_cal = np.mean(2.0 * np.sqrt(np.cos(ang)[None] ** 2 + (aspect_y[:, None] * np.sin(ang)[None]) ** 2), axis=1)
+    a = d / mean_cal
+    semi = np.column_stack([a, a * aspect_y, 0.5 * d * aspect_z])
+    ux, uy, uz = (np.ascontiguousarray(unit_v[:, k]) for k in range(3))
+    bx, by, bz = (bumps * ux) * semi[:, :1], (bumps * uy) * semi[:, 1:2], (bumps * uz) * semi[:, 2:3]
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    vx, vy = bx * c - by * s, bx * s + by * c
+    z_ground = np.reshape(ground(np.column_stack([(vx + xy[:, :1]).ravel(), (vy + xy[:, 1:]).ravel()])), bz.shape)
+    base = np.minimum(np.where(bz < 0.0, z_ground, np.inf).min(axis=1), ground(xy))
+    z_lo, z_hi = bz.min(axis=1), bz.max(axis=1)
+    lift = base - z_lo - embed_fraction * (z_hi - z_lo)
+    v = np.stack([vx + xy[:, :1], vy + xy[:, 1:], bz + lift[:, None]], axis=2)
+    centre = np.column_stack([xy[:, 0] + 0.5 * (vx.min(axis=1) + vx.max(axis=1)),
+                              xy[:, 1] + 0.5 * (vy.min(axis=1) + vy.max(axis=1)), lift + 0.5 * (z_lo + z_hi)])
+    return RockShapes(v, unit_f, semi, yaw, lift, centre, z_hi - z_lo)

@@ -32,13 +32,15 @@ class CatalogTruth:
 
 
 def orbital_detection_probability(size_m: np.ndarray, cfg: OrbitalConfig) -> np.ndarray:
-    """Probability (R,) that the nadir detector finds each rock of diameter ``size_m`` (R,)."""
+    """Probability (R,) that the nadir detector finds each rock of diameter ``size_m`` (R,); the
+    mean over ``size_m`` (``recall_basis`` "all") or over its rocks of ``min_size_px`` and more
+    ("detectable") is the configured recall."""
     cfg = resolve_orbital(cfg)
     seen = size_m / cfg.gsd_m >= cfg.min_size_px
     p = np.zeros(len(size_m))
     if not np.any(seen):
         return p
-    target = cfg.recall * len(size_m)
+    target = cfg.recall * (seen.sum() if cfg.recall_basis == "detectable" else len(size_m))
     if target >= seen.sum():
         if cfg.recall < 1.0:
             log.warning("orbital recall %.3f needs rocks below min_size_px; all visible rocks are found", cfg.recall)
