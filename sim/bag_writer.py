@@ -198,6 +198,33 @@ class _Encoder:
         return T[ROCKS_TYPE](header=self.header(ns, self.frame_base), detections=detections)
 
 
+def _fast_encoder(enc: _Encoder, encoding: BagEncoding):
+    """The precompiled encoders of :mod:`sim.bag_fast` when they reproduce rosbags' bytes on
+    sample messages of every type (else None: the rosbags path is used)."""
+    from sim.bag_fast import FastEncoder, check_against_rosbags
+
+    fast = FastEncoder(enc.frame_base, WORLD_FRAME, ROCK_CLASS_ID,
+                       (enc.imu_orientation_cov, enc.imu_gyro_cov, enc.imu_accel_cov),
+                       (enc.wheel_pose_cov, enc.wheel_twist_cov), encoding.rock_rotation_var)
+    rng = np.random.default_rng(0)
+    q = rng.standard_normal(4)
+    q /= np.linalg.norm(q)
+    samples = [
+        (CmdVel(1.25, 0.11, -0.02), 1_250_000_000, "cmd_vel", CMD_VEL_TYPE),
+        (ImuSample(2.5, q, rng.standard_normal(3), rng.standard_normal(3)), 2_500_000_001, "imu", IMU_TYPE),
+        (WheelOdometry(3.0, 0.1, 0.01), 3_000_000_000, "wheel", ODOMETRY_TYPE),
+        (GroundTruthPose(4.0, rng.standard_normal(3), q), 4_000_000_000, "ground_truth", ODOMETRY_TYPE),
+    ]
+    for n in range(4):
+        a = rng.standard_normal((n, 3, 3))
+        samples.append((RockObservations(5.0 + n, rng.standard_normal((n, 3)), a @ np.swapaxes(a, 1, 2) + np.eye(3),
+                                         rng.random(n) + 0.1, rng.random(n)), 5_000_000_000 + n, "rocks", ROCKS_TYPE))
+    if check_against_rosbags(fast, enc, samples):
+        return fast
+    log.warning("fast CDR encoders disagree with rosbags on sample messages; using rosbags")
+    return None
+
+
 def _remove_bag_dir(path: Path) -> None:
     """Delete an existing bag directory, refusing anything that does not look like one."""
     if not path.is_dir():
@@ -237,6 +264,7 @@ def write_bag(
     path.parent.mkdir(parents=True, exist_ok=True)
 
     enc = _Encoder(frame_id_base, encoding)
+    fast = _fast_encoder(enc, encoding)
     routes = {
         CmdVel: (topics.cmd_vel, CMD_VEL_TYPE, enc.cmd_vel),
         ImuSample: (topics.imu, IMU_TYPE, enc.imu),
@@ -244,6 +272,10 @@ def write_bag(
         GroundTruthPose: (topics.ground_truth, ODOMETRY_TYPE, enc.ground_truth),
         RockObservations: (topics.rocks, ROCKS_TYPE, enc.rocks),
     }
+    encode = {t: (lambda m, ns, b=b, mt=mt: enc.ts.serialize_cdr(b(m, ns), mt)) for t, (_, mt, b) in routes.items()}
+    if fast is not None:
+        encode.update({CmdVel: fast.cmd_vel, ImuSample: fast.imu, WheelOdometry: fast.wheel,
+                       GroundTruthPose: fast.ground_truth, RockObservations: fast.rocks})
     counts: dict[str, int] = {}
     connections = {}
     ns_min, ns_max = None, None
@@ -257,7 +289,7 @@ def write_bag(
                     raise BagWriteError(
                         f"cannot write {type(m).__name__} to bag {path}: unknown type"
                     )
-                topic, msgtype, build = route
+                topic, msgtype, _ = route
                 ns = stamp_ns(m.t)
                 if ns < 0:
                     raise BagWriteError(
@@ -268,7 +300,7 @@ def write_bag(
                     conn = writer.add_connection(topic, msgtype, typestore=enc.ts)
                     connections[topic] = conn
                     counts[topic] = 0
-                writer.write(conn, ns, enc.ts.serialize_cdr(build(m, ns), msgtype))
+                writer.write(conn, ns, encode[type(m)](m, ns))
                 counts[topic] += 1
                 ns_min = ns if ns_min is None else min(ns_min, ns)
                 ns_max = ns if ns_max is None else max(ns_max, ns)

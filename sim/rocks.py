@@ -63,22 +63,25 @@ class Rocks:
         )
 
     @staticmethod
-    def from_vertex_blocks(vertices_m: np.ndarray, faces: np.ndarray, ids: np.ndarray,
-                           size_m: np.ndarray | None = None) -> Rocks:
+    def from_vertex_blocks(vertices_m: np.ndarray, faces: np.ndarray, ids: np.ndarray, *,
+                           xyz_m: np.ndarray | None = None, size_m: np.ndarray | None = None,
+                           height_m: np.ndarray | None = None) -> Rocks:
         """Rocks that share one mesh topology: ``vertices_m`` (R, V, 3) world metres, ``faces``
         (F, 3) indices into each rock's V vertices, ``ids`` (R,); vectorised :meth:`from_meshes`.
-        ``size_m`` (R,): the rocks' caliper diameters when already known."""
+        ``xyz_m``, ``size_m``, ``height_m``: the rocks' centres, diameters and heights when they are
+        known (else the meshes' bounding-box centres, mean caliper widths and heights)."""
         v = np.asarray(vertices_m, dtype=float)
         n = len(v)
         if n == 0:
             return Rocks.from_meshes([])
-        lo, hi = v.min(axis=1), v.max(axis=1)
+        if xyz_m is None or height_m is None:
+            lo, hi = v.min(axis=1), v.max(axis=1)
         offsets = (np.arange(n, dtype=np.int64) * v.shape[1])[:, None, None]
         return Rocks(
-            xyz_m=0.5 * (lo + hi),
+            xyz_m=0.5 * (lo + hi) if xyz_m is None else np.asarray(xyz_m, dtype=float),
             size_m=caliper_diameters(v[:, :, :2]) if size_m is None else np.asarray(size_m, dtype=float),
             id=np.asarray(ids, dtype=np.int64),
-            height_m=hi[:, 2] - lo[:, 2],
+            height_m=hi[:, 2] - lo[:, 2] if height_m is None else np.asarray(height_m, dtype=float),
             vertices_m=v.reshape(-1, 3),
             triangles=(np.asarray(faces, dtype=np.int64)[None] + offsets).reshape(-1, 3).astype(np.int32),
             triangle_rock=np.repeat(np.arange(n, dtype=np.int64), len(faces)),
@@ -200,53 +203,65 @@ def generate_rocks(
 
 
 @dataclass(frozen=True)
-class RockShapes:
-    """Vectorised rock meshes: ``vertices_m`` (R, V, 3) world metres sharing ``faces`` (F, 3); the
-    underlying ellipsoids' ``semi_m`` (R, 3) semi-axes and ``yaw_rad`` (R,) and the world height of
-    their centres ``z_centre_m`` (R,) (the vertices are bumped versions of them); the meshes'
-    bounding-box centres ``bbox_centre_m`` (R, 3) and heights ``height_m`` (R,)."""
+class RockEllipsoids:
+    """Rocks as the squashed ellipsoids their meshes perturb: centres ``xyz_m`` (R, 3) (world;
+    the rock's true centre), ``semi_m`` (R, 3) semi-axes (x, y horizontal before the yaw, z up),
+    ``yaw_rad`` (R,). Diameter (mean caliper width of the horizontal ellipse) and height (2 semi z)
+    follow."""
 
-    vertices_m: np.ndarray
-    faces: np.ndarray
+    xyz_m: np.ndarray
     semi_m: np.ndarray
     yaw_rad: np.ndarray
-    z_centre_m: np.ndarray
-    bbox_centre_m: np.ndarray
-    height_m: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.yaw_rad)
+
+    @property
+    def height_m(self) -> np.ndarray:
+        return 2.0 * self.semi_m[:, 2]
 
 
-def rock_shapes(
-    xy_m: np.ndarray, diameter_m: np.ndarray, rng: np.random.Generator, ground, *,
-    embed_fraction: float = 0.15, subdivisions: int = 1,
-) -> RockShapes:
-    """Vectorised rock meshes (the shape model of :func:`generate_rocks`): a randomly perturbed
-    squashed icosphere per rock whose underlying ellipse has a mean caliper width of
-    ``diameter_m``, resting on the ground given by ``ground(xy (N, 2)) -> z (N,)`` with
-    ``embed_fraction`` of its height below the lowest ground under its footprint."""
-    unit_v, unit_f = icosphere(subdivisions)
+def _mean_caliper_unit(aspect: np.ndarray) -> np.ndarray:
+    """Mean caliper width of ellipses of semi-axes (1, aspect) (R,): mean of 2 sqrt(cos^2 + b^2 sin^2)."""
+    ang = np.arange(8) * np.pi / 8
+    return np.mean(2.0 * np.sqrt(np.cos(ang)[None] ** 2 + (aspect[:, None] * np.sin(ang)[None]) ** 2), axis=1)
+
+
+def rock_ellipsoids(xy_m: np.ndarray, diameter_m: np.ndarray, rng: np.random.Generator, ground, *,
+                    embed_fraction: float = 0.15) -> RockEllipsoids:
+    """Rocks of the shape model of :func:`generate_rocks` (aspect ratios 0.7-1 across, 0.35-0.7
+    up, random yaw) whose horizontal ellipse has a mean caliper width of ``diameter_m``, resting on
+    the ground ``ground(xy (N, 2)) -> z (N,)`` with ``embed_fraction`` of their height below the
+    lowest ground under their outline (sampled at the centre and 8 points of the ellipse)."""
     d = np.asarray(diameter_m, dtype=float)
     xy = np.reshape(np.asarray(xy_m, dtype=float), (-1, 2))
     n = len(d)
-    if n == 0:
-        return RockShapes(np.zeros((0, len(unit_v), 3)), unit_f, np.zeros((0, 3)), np.zeros(0), np.zeros(0),
-                          np.zeros((0, 3)), np.zeros(0))
     aspect_y, aspect_z = rng.uniform(0.7, 1.0, n), rng.uniform(0.35, 0.7, n)
-    bumps = 1.0 + 0.12 * rng.standard_normal((n, len(unit_v)))
     yaw = rng.uniform(0.0, 2.0 * np.pi, n)
-    # mean caliper width of an ellipse of semi-axes (1, b): the mean of 2 sqrt(cos^2 + b^2 sin^2)
-    ang = np.arange(8) * np.pi / 8
-    mean_cal = np.mean(2.0 * np.sqrt(np.cos(ang)[None] ** 2 + (aspect_y[:, None] * np.sin(ang)[None]) ** 2), axis=1)
-    a = d / mean_cal
+    a = d / _mean_caliper_unit(aspect_y) if n else np.zeros(0)
     semi = np.column_stack([a, a * aspect_y, 0.5 * d * aspect_z])
-    ux, uy, uz = (np.ascontiguousarray(unit_v[:, k]) for k in range(3))
-    bx, by, bz = (bumps * ux) * semi[:, :1], (bumps * uy) * semi[:, 1:2], (bumps * uz) * semi[:, 2:3]
+    th = np.arange(8) * np.pi / 4
+    ex, ey = np.cos(th)[None] * semi[:, :1], np.sin(th)[None] * semi[:, 1:2]
     c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    vx, vy = bx * c - by * s, bx * s + by * c
-    z_ground = np.reshape(ground(np.column_stack([(vx + xy[:, :1]).ravel(), (vy + xy[:, 1:]).ravel()])), bz.shape)
-    base = np.minimum(np.where(bz < 0.0, z_ground, np.inf).min(axis=1), ground(xy))
-    z_lo, z_hi = bz.min(axis=1), bz.max(axis=1)
-    lift = base - z_lo - embed_fraction * (z_hi - z_lo)
-    v = np.stack([vx + xy[:, :1], vy + xy[:, 1:], bz + lift[:, None]], axis=2)
-    centre = np.column_stack([xy[:, 0] + 0.5 * (vx.min(axis=1) + vx.max(axis=1)),
-                              xy[:, 1] + 0.5 * (vy.min(axis=1) + vy.max(axis=1)), lift + 0.5 * (z_lo + z_hi)])
-    return RockShapes(v, unit_f, semi, yaw, lift, centre, z_hi - z_lo)
+    fx, fy = xy[:, :1] + ex * c - ey * s, xy[:, 1:] + ex * s + ey * c
+    if n:
+        z_ground = np.reshape(ground(np.column_stack([fx.ravel(), fy.ravel()])), fx.shape).min(axis=1)
+        base = np.minimum(z_ground, ground(xy))
+    else:
+        base = np.zeros(0)
+    z_centre = base + semi[:, 2] - embed_fraction * 2.0 * semi[:, 2]
+    return RockEllipsoids(np.column_stack([xy, z_centre]), semi, yaw)
+
+
+def ellipsoid_meshes(rocks: RockEllipsoids, rng: np.random.Generator, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Meshes of ``rocks``: icospheres scaled to the ellipsoids with a seeded 12 % radial
+    roughness per vertex (as :func:`generate_rocks`); vertices (R, V, 3) world, faces (F, 3)."""
+    unit_v, unit_f = icosphere(subdivisions)
+    n = len(rocks)
+    bumps = 1.0 + 0.12 * rng.standard_normal((n, len(unit_v)))
+    sm = rocks.semi_m
+    bx, by, bz = (bumps * unit_v[:, 0]) * sm[:, :1], (bumps * unit_v[:, 1]) * sm[:, 1:2], (bumps * unit_v[:, 2]) * sm[:, 2:3]
+    c, s = np.cos(rocks.yaw_rad)[:, None], np.sin(rocks.yaw_rad)[:, None]
+    p = rocks.xyz_m
+    v = np.stack([p[:, :1] + bx * c - by * s, p[:, 1:2] + bx * s + by * c, p[:, 2:3] + bz], axis=2)
+    return v, unit_f

@@ -14,16 +14,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.craters import Craters, stamp_relief
-from sim.rocks import Rocks, RockShapes, rock_shapes
+from sim.rocks import RockEllipsoids, Rocks, ellipsoid_meshes, rock_ellipsoids
 from sim.terrain import Heightmap
 
-ROCK_ID_K_BITS = 22  # rock id = (tile key << 22) | row: 4 M rocks per tile
-_OFFSET = 1 << 20  # tile indices as non-negative ints in seeds and ids
+ROCK_ID_K_BITS = 22  # rock id = (tile key << 22) | row: 4 M rocks per tile, ids below 2^54
+_OFFSET = 1 << 15  # tile indices as non-negative ints in seeds and ids (|ix|, |iy| < 32768)
 
 
 def tile_key_int(ix: int, iy: int) -> int:
-    """A non-negative int naming tile (ix, iy) (|ix|, |iy| < 2^20)."""
-    return ((ix + _OFFSET) << 21) | (iy + _OFFSET)
+    """A non-negative int below 2^32 naming tile (ix, iy)."""
+    if not (-_OFFSET <= ix < _OFFSET and -_OFFSET <= iy < _OFFSET):
+        raise ValueError(f"tile index ({ix}, {iy}) out of range")
+    return ((ix + _OFFSET) << 16) | (iy + _OFFSET)
 
 
 def tile_rng(seed: int, stream: int, ix: int, iy: int) -> np.random.Generator:
@@ -31,7 +33,7 @@ def tile_rng(seed: int, stream: int, ix: int, iy: int) -> np.random.Generator:
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, stream, ix + _OFFSET, iy + _OFFSET])
 
 
-STREAM_ROCKS, STREAM_MESH, STREAM_SHAPE = 0x40C5, 0x3E5A, 0x5A9E
+STREAM_ROCKS, STREAM_MESH, STREAM_SHAPE, STREAM_BUMPS = 0x40C5, 0x3E5A, 0x5A9E, 0xB0B5
 
 
 @dataclass(frozen=True)
@@ -39,8 +41,8 @@ class TileRocks:
     """The rocks a tile owns: ``xy_m`` (R, 2), ``diameter_m`` (R,) (mean caliper width), ``id``
     (R,) int64, ``ejecta`` (R,) bool (thrown by a crater), ``shape_error`` (R,) a standard-normal
     draw per rock (its stereo centre error in units of ``centre_error_frac`` radii), and the
-    shapes' ``xyz_m`` (R, 3) bounding-box centres, ``height_m`` (R,), ``semi_m`` (R, 3),
-    ``yaw_rad`` (R,), ``z_centre_m`` (R,)."""
+    ellipsoids the meshes perturb: centres ``xyz_m`` (R, 3) (the rocks' true centres),
+    ``semi_m`` (R, 3), ``yaw_rad`` (R,)."""
 
     xy_m: np.ndarray
     diameter_m: np.ndarray
@@ -48,13 +50,18 @@ class TileRocks:
     ejecta: np.ndarray
     shape_error: np.ndarray
     xyz_m: np.ndarray
-    height_m: np.ndarray
     semi_m: np.ndarray
     yaw_rad: np.ndarray
-    z_centre_m: np.ndarray
 
     def __len__(self) -> int:
         return len(self.diameter_m)
+
+    @property
+    def height_m(self) -> np.ndarray:
+        return 2.0 * self.semi_m[:, 2]
+
+    def ellipsoids(self) -> RockEllipsoids:
+        return RockEllipsoids(self.xyz_m, self.semi_m, self.yaw_rad)
 
 
 @dataclass(frozen=True)
@@ -92,20 +99,20 @@ def tile_rocks(seed: int, ix: int, iy: int, extent: tuple[float, float, float, f
     xy = np.vstack([xy_bg, np.reshape(blocks_xy, (-1, 2))])
     d = np.concatenate([d_bg, np.ravel(blocks_d)])
     shape_error = tile_rng(seed, STREAM_SHAPE, ix, iy).standard_normal(len(d))
-    shapes = tile_shapes(seed, ix, iy, xy, d, terrain, embed_fraction)
+    ell = rock_ellipsoids(xy, d, tile_rng(seed, STREAM_MESH, ix, iy), terrain.height_at, embed_fraction=embed_fraction)
     ids = (np.int64(tile_key_int(ix, iy)) << ROCK_ID_K_BITS) + np.arange(len(d), dtype=np.int64)
-    return TileRocks(xy, d, ids, np.arange(len(d)) >= n, shape_error, shapes.bbox_centre_m, shapes.height_m,
-                     shapes.semi_m, shapes.yaw_rad, shapes.z_centre_m)
+    return TileRocks(xy, d, ids, np.arange(len(d)) >= n, shape_error, ell.xyz_m, ell.semi_m, ell.yaw_rad)
 
 
-def tile_shapes(seed: int, ix: int, iy: int, xy: np.ndarray, d: np.ndarray, terrain: Heightmap,
-                embed_fraction: float) -> RockShapes:
-    """The rock meshes of tile (ix, iy) (the same arrays every time they are asked for)."""
-    return rock_shapes(xy, d, tile_rng(seed, STREAM_MESH, ix, iy), terrain.height_at, embed_fraction=embed_fraction)
+def tile_meshes(seed: int, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (R, V, 3) and faces (F, 3) of the meshes of all the tile's rocks (the same arrays
+    every time they are asked for)."""
+    return ellipsoid_meshes(tile.rocks.ellipsoids(), tile_rng(seed, STREAM_BUMPS, tile.ix, tile.iy))
 
 
 def tile_rock_set(tile: Tile, vertices_m: np.ndarray, faces: np.ndarray, keep: np.ndarray) -> Rocks:
     """:class:`sim.rocks.Rocks` (with meshes ``vertices_m`` (R, V, 3) of the whole tile) of the
     tile's rocks selected by ``keep``."""
     r = tile.rocks
-    return Rocks.from_vertex_blocks(vertices_m[keep], faces, r.id[keep], size_m=r.diameter_m[keep])
+    return Rocks.from_vertex_blocks(vertices_m[keep], faces, r.id[keep], xyz_m=r.xyz_m[keep],
+                                    size_m=r.diameter_m[keep], height_m=r.height_m[keep])

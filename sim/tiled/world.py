@@ -27,7 +27,7 @@ from sim.rocks import Rocks
 from sim.terrain import Heightmap
 from sim.tiled.config import TiledWorldConfig
 from sim.tiled.noise import FractalNoise
-from sim.tiled.tiles import Tile, TileRocks, tile_dem, tile_rock_set, tile_rocks, tile_shapes
+from sim.tiled.tiles import Tile, TileRocks, tile_dem, tile_meshes, tile_rock_set, tile_rocks
 from sim.world import World
 
 CRATER_CLASSES = ((8.0, 64.0), (40.0, 256.0), (math.inf, 1024.0))  # (upper diameter m, cell m)
@@ -195,9 +195,7 @@ class TiledWorld:
         return Tile(ix, iy, ext, terrain, rocks, craters)
 
     def _make_meshes(self, key):
-        t = self.tile(*key)
-        s = tile_shapes(self.seed, t.ix, t.iy, t.rocks.xy_m, t.rocks.diameter_m, t.terrain, self.cfg.rocks.embed_fraction)
-        return s.vertices_m, s.faces
+        return tile_meshes(self.seed, self.tile(*key))
 
     # -- region queries ------------------------------------------------------------------------
     def _lattice(self, extent) -> tuple[np.ndarray, np.ndarray]:

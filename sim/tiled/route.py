@@ -1,0 +1,253 @@
+"""Mission-like routes over a tiled world.
+
+Strategic: waypoints ``strategic_min_m``-``strategic_max_m`` apart, the heading changing by a
+normal draw (sigma ``heading_sigma_deg``, at most ``max_turn_deg``) at each; a leg is accepted when it
+stays ``edge_margin_m`` inside the world, ``path_clearance_m`` from every earlier leg but the last,
+outside the interior of every crater of 30 m and more (plus clearance), and below
+``max_slope_deg`` on the coarse DEM. With ``loop`` the waypoints go round a closed polygon back to
+the start.
+
+Local (:class:`LocalPlanner`): the rover plans on a ``cell_m`` grid around the next stretch of its
+leg (``corridor_m`` either side), avoiding rocks of ``avoid_rock_diameter_m`` and more, crater
+interiors deeper than ``avoid_crater_depth_m``, slopes above ``max_slope_deg`` and every place
+within ``revisit_radius_m`` of where it has been and already left (so it never comes back), by
+Dijkstra on the 8-connected grid (scipy.sparse.csgraph) and line-of-sight smoothing; it drives
+``drive_step_m`` of the plan, stops, and plans again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from sim.craters import depth_ratio
+from sim.errors import SimError
+from sim.tiled.config import KmRouteConfig
+from sim.tiled.world import TiledWorld
+
+log = logging.getLogger(__name__)
+
+STRATEGIC_CRATER_M = 30.0  # craters this big are avoided by the strategic legs
+
+
+def _seg_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances (N,) of points ``p`` (N, 2) to segment a-b."""
+    ab = b - a
+    u = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(a + u[:, None] * ab - p, axis=1)
+
+
+def _leg_ok(world: TiledWorld, pts: list[np.ndarray], q: np.ndarray, cfg: KmRouteConfig) -> bool:
+    a = pts[-1]
+    xmin, xmax, ymin, ymax = world.extent
+    m = cfg.edge_margin_m
+    if not (xmin + m <= q[0] <= xmax - m and ymin + m <= q[1] <= ymax - m):
+        return False
+    n = max(int(np.linalg.norm(q - a) / 4.0), 2)
+    samples = a + np.linspace(0.0, 1.0, n)[:, None] * (q - a)
+    for k in range(len(pts) - 2):  # every earlier leg but the one ending at a
+        if _seg_dist(samples, pts[k], pts[k + 1]).min() < cfg.path_clearance_m:
+            return False
+    box = (min(a[0], q[0]), max(a[0], q[0]), min(a[1], q[1]), max(a[1], q[1]))
+    big = world.craters_near(box, reach_radii=1.5, d_min_m=STRATEGIC_CRATER_M)
+    if len(big) and np.any(_seg_dist(big.xy_m, a, q) < 0.5 * big.diameter_m * 1.3 + 5.0):
+        return False
+    dem = world.coarse_heightmap((box[0] - 16, box[1] + 16, box[2] - 16, box[3] + 16))
+    grad = dem.gradient_at(samples)
+    return bool(np.degrees(np.arctan(np.hypot(grad[:, 0], grad[:, 1]).max())) <= cfg.max_slope_deg)
+
+
+def plan_strategic(world: TiledWorld, length_m: float, cfg: KmRouteConfig, rng: np.random.Generator) -> np.ndarray:
+    """Strategic waypoints (W, 2), polyline length >= ``length_m``; the first is the start."""
+    xmin, xmax, ymin, ymax = world.extent
+    centre = np.array([0.5 * (xmin + xmax), 0.5 * (ymin + ymax)])
+    side = min(xmax - xmin, ymax - ymin)
+    if cfg.loop:
+        return _loop_route(world, centre, length_m, rng)
+    for _restart in range(20):
+        pts = [centre + (rng.random(2) - 0.5) * 0.3 * side]
+        heading = rng.uniform(-np.pi, np.pi)
+        total = 0.0
+        while total < length_m:
+            chosen = None
+            for attempt in range(120):
+                spread = math.radians(cfg.heading_sigma_deg) * (1.0 + attempt / 30.0)
+                turn = float(np.clip(spread * rng.standard_normal(), -math.radians(cfg.max_turn_deg), math.radians(cfg.max_turn_deg)))
+                if len(pts) == 1:
+                    turn = rng.uniform(-np.pi, np.pi)
+                h = heading + turn
+                q = pts[-1] + rng.uniform(cfg.strategic_min_m, cfg.strategic_max_m) * np.array([np.cos(h), np.sin(h)])
+                if _leg_ok(world, pts, q, cfg):
+                    chosen, heading = q, h
+                    break
+            if chosen is None:
+                break
+            total += float(np.linalg.norm(chosen - pts[-1]))
+            pts.append(chosen)
+        if total >= length_m:
+            return np.array(pts)
+    raise SimError(f"no strategic route of {length_m:.0f} m fits world {world.name} ({side:.0f} m side) "
+                   f"without coming back near itself; use a bigger tiled.size_m")
+
+
+def _loop_route(world: TiledWorld, centre: np.ndarray, length_m: float, rng: np.random.Generator) -> np.ndarray:
+    """A closed polygon of perimeter ~``length_m`` round the world centre, back to its start."""
+    r = length_m / (2.0 * np.pi) * 1.02
+    n = max(int(length_m / 200.0), 6)
+    th = np.linspace(0.0, 2.0 * np.pi, n + 1) + rng.uniform(0, 2 * np.pi)
+    rad = r * (1.0 + 0.1 * rng.standard_normal(n + 1))
+    rad[-1] = rad[0]
+    pts = centre + np.column_stack([rad * np.cos(th), rad * np.sin(th)])
+    xmin, xmax, ymin, ymax = world.extent
+    if pts[:, 0].min() < xmin or pts[:, 0].max() > xmax or pts[:, 1].min() < ymin or pts[:, 1].max() > ymax:
+        raise SimError(f"a loop of {length_m:.0f} m does not fit world {world.name}")
+    return pts
+
+
+class LocalPlanner:
+    """Grid planner of the local stretch of a leg (see the module doc)."""
+
+    def __init__(self, world: TiledWorld, cfg: KmRouteConfig, horizon_m: float = 50.0) -> None:
+        self.world, self.cfg, self.horizon_m = world, cfg, horizon_m
+        self.history_xy: list[tuple[float, float]] = []  # the driven path, every ~metre
+        self.n_relaxed = 0  # plans that had to let the rover near its old path
+
+    def record(self, xy: np.ndarray) -> None:
+        """Append the driven positions ``xy`` (N, 2) to the history (thinned to ~1 m)."""
+        for p in np.reshape(xy, (-1, 2)):
+            if not self.history_xy or math.dist(self.history_xy[-1], p) >= 1.0:
+                self.history_xy.append((float(p[0]), float(p[1])))
+
+    def plan(self, start: np.ndarray, goal: np.ndarray, *, near_end_of_loop: bool = False) -> np.ndarray:
+        """Polyline (M, 2) from ``start`` towards ``goal`` (or the reachable free cell nearest it)."""
+        cfg = self.cfg
+        c = cfg.corridor_m
+        ext = (min(start[0], goal[0]) - c, max(start[0], goal[0]) + c, min(start[1], goal[1]) - c, max(start[1], goal[1]) + c)
+        blocked, cost, x0, y0 = self._costmap(ext, start, use_history=not near_end_of_loop)
+        path = self._search(blocked, cost, x0, y0, start, goal)
+        if path is None:  # walled in by its own old path: let it through (counted)
+            self.n_relaxed += 1
+            log.warning("local plan at (%.1f, %.1f): no way on that keeps clear of the old path", *start)
+            blocked, cost, x0, y0 = self._costmap(ext, start, use_history=False)
+            path = self._search(blocked, cost, x0, y0, start, goal)
+        if path is None:
+            raise SimError(f"local planner: no free path from ({start[0]:.1f}, {start[1]:.1f}) in world {self.world.name}")
+        return path
+
+    def _costmap(self, ext, start, use_history: bool):
+        cfg, res = self.cfg, self.cfg.cell_m
+        hm = self.world.heightmap(ext)
+        xs = np.arange(ext[0], ext[1] + 1e-9, res)
+        ys = np.arange(ext[2], ext[3] + 1e-9, res)
+        gx, gy = np.meshgrid(xs, ys)
+        pts = np.column_stack([gx.ravel(), gy.ravel()])
+        grad = hm.gradient_at(pts)
+        slope = np.degrees(np.arctan(np.hypot(grad[:, 0], grad[:, 1]))).reshape(gx.shape)
+        blocked = slope > cfg.max_slope_deg
+        rocks = self.world.rocks_in((ext[0] - 2, ext[1] + 2, ext[2] - 2, ext[3] + 2), cfg.avoid_rock_diameter_m)
+        discs = [(rocks.xy_m, 0.5 * rocks.diameter_m + cfg.rock_clearance_m)]
+        cr = self.world.craters_near(ext, reach_radii=1.2)
+        deep = cr.diameter_m * depth_ratio(cr.degradation) > cfg.avoid_crater_depth_m
+        discs.append((cr.xy_m[deep], 0.5 * cr.diameter_m[deep] + cfg.crater_clearance_m))
+        for centres, radii in discs:
+            _mark_discs(blocked, centres, radii, ext[0], ext[2], res)
+        if use_history and self.history_xy:
+            h = np.array(self.history_xy)
+            left = np.linalg.norm(h - start, axis=1) >= cfg.revisit_radius_m  # places it has left
+            h = h[left]
+            inside = (h[:, 0] > ext[0] - cfg.revisit_radius_m) & (h[:, 0] < ext[1] + cfg.revisit_radius_m) & (
+                h[:, 1] > ext[2] - cfg.revisit_radius_m) & (h[:, 1] < ext[3] + cfg.revisit_radius_m)
+            _mark_discs(blocked, h[inside], np.full(int(inside.sum()), cfg.revisit_radius_m + 1.0), ext[0], ext[2], res)
+        # the rover's own cell and its immediate surroundings stay usable (it is standing there)
+        _mark_discs(blocked, np.reshape(start, (1, 2)), np.array([0.8]), ext[0], ext[2], res, value=False)
+        cost = 1.0 + 2.0 * (np.clip(slope / cfg.max_slope_deg, 0, 1)) ** 2
+        # stay a little off obstacles where there is room
+        dist = distance_transform_edt(~blocked) * res
+        cost = cost + 1.5 * np.exp(-dist / 0.5)
+        return blocked, cost, ext[0], ext[2]
+
+    def _search(self, blocked, cost, x0, y0, start, goal):
+        res = self.cfg.cell_m
+        ny, nx = blocked.shape
+        def cell(p):
+            return (int(np.clip(round((p[1] - y0) / res), 0, ny - 1)), int(np.clip(round((p[0] - x0) / res), 0, nx - 1)))
+        s = cell(start)
+        free = ~blocked
+        idx = np.arange(ny * nx).reshape(ny, nx)
+        rows, cols, w = [], [], []
+        for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            a = idx[max(0, -di):ny - max(0, di), max(0, -dj):nx - max(0, dj)]
+            b = idx[max(0, di):ny - max(0, -di) if di <= 0 else ny, max(0, dj):nx - max(0, -dj) if dj <= 0 else nx]
+            a, b = a.ravel(), b.ravel()
+            ok = free.ravel()[a] & free.ravel()[b]
+            a, b = a[ok], b[ok]
+            step = res * math.hypot(di, dj)
+            wt = step * 0.5 * (cost.ravel()[a] + cost.ravel()[b])
+            rows += [a, b]
+            cols += [b, a]
+            w += [wt, wt]
+        g = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(ny * nx, ny * nx)).tocsr()
+        dist, pred = dijkstra(g, indices=idx[s], return_predecessors=True)
+        reach = np.isfinite(dist)
+        if reach.sum() < 2:
+            return None
+        gi, gj = cell(goal)
+        target = idx[gi, gj]
+        if not reach[target]:  # the reachable cell nearest the goal
+            ii, jj = np.divmod(np.flatnonzero(reach), nx)
+            k = int(np.argmin((ii - gi) ** 2 + (jj - gj) ** 2))
+            target = int(ii[k] * nx + jj[k])
+            if math.hypot(ii[k] - s[0], jj[k] - s[1]) * res < 2.0:
+                return None
+        chain = [target]
+        while chain[-1] != idx[s]:
+            chain.append(int(pred[chain[-1]]))
+        chain = np.array(chain[::-1])
+        ci, cj = np.divmod(chain, nx)
+        xy = np.column_stack([x0 + cj * res, y0 + ci * res])
+        xy[0] = start
+        return _smooth(xy, blocked, x0, y0, res)
+
+
+def _mark_discs(grid: np.ndarray, centres: np.ndarray, radii: np.ndarray, x0: float, y0: float, res: float,
+                value: bool = True) -> None:
+    """Set the cells of ``grid`` (ny, nx) within ``radii`` (K,) of ``centres`` (K, 2) to ``value``."""
+    ny, nx = grid.shape
+    for (cx, cy), r in zip(np.reshape(centres, (-1, 2)), np.ravel(radii)):
+        j0, j1 = max(int((cx - r - x0) / res), 0), min(int(math.ceil((cx + r - x0) / res)), nx - 1)
+        i0, i1 = max(int((cy - r - y0) / res), 0), min(int(math.ceil((cy + r - y0) / res)), ny - 1)
+        if j1 < j0 or i1 < i0:
+            continue
+        jj = x0 + res * np.arange(j0, j1 + 1) - cx
+        ii = y0 + res * np.arange(i0, i1 + 1) - cy
+        m = ii[:, None] ** 2 + jj[None, :] ** 2 <= r * r
+        sub = grid[i0:i1 + 1, j0:j1 + 1]
+        sub[m] = value
+
+
+def _smooth(xy: np.ndarray, blocked: np.ndarray, x0: float, y0: float, res: float) -> np.ndarray:
+    """Line-of-sight shortcuts of a grid path (N, 2): keep a vertex only where the straight line
+    to the next kept one would cross a blocked cell."""
+    ny, nx = blocked.shape
+
+    def clear(a, b):
+        n = max(int(np.linalg.norm(b - a) / (0.5 * res)), 2)
+        p = a + np.linspace(0, 1, n)[:, None] * (b - a)
+        j = np.clip(np.rint((p[:, 0] - x0) / res).astype(int), 0, nx - 1)
+        i = np.clip(np.rint((p[:, 1] - y0) / res).astype(int), 0, ny - 1)
+        return not blocked[i[1:], j[1:]].any()
+
+    out = [xy[0]]
+    k = 0
+    while k < len(xy) - 1:
+        j = k + 1
+        while j + 1 < len(xy) and clear(xy[k], xy[j + 1]):  # walk on while the line of sight holds
+            j += 1
+        out.append(xy[j])
+        k = j
+    return np.array(out)
