@@ -54,12 +54,16 @@ class Driver:
     def __init__(self, world: TiledWorld, cfg: SimConfig, rng: np.random.Generator) -> None:
         self.world, self.cfg = world, cfg
         rc = cfg.tiled.route
-        self.route = plan_strategic(world, 1.3 * cfg.traverse.distance_m + 2 * rc.strategic_max_m, rc, rng)
+        # a loop's polygon is a little shorter than the traverse (local detours add length): the
+        # drive ends back at the start; otherwise plenty of route for the detours
+        length = cfg.traverse.distance_m / 1.05 if rc.loop else 1.3 * cfg.traverse.distance_m + 2 * rc.strategic_max_m
+        self.route = plan_strategic(world, length, rc, rng)
         self.planner = LocalPlanner(world, rc)
         self.odometer_m = 0.0
         self.n_steps = 0
         self.n_stops = 0
         self.legs_done = 0
+        self.ticks = 0  # ticks yielded so far
 
     def _dem_around(self, xy: np.ndarray, margin_m: float = 3.0) -> Heightmap:
         xy = np.reshape(xy, (-1, 2))
@@ -78,11 +82,14 @@ class Driver:
         d0 = self.route[1] - self.route[0]
         yaw = math.atan2(d0[1], d0[0])
         n0 = max(round(cfg.traverse.start_pause_s / dt), 1)
+        self.ticks = n0
         yield DriveSegment(_standstill(pos[0], pos[1], yaw, n0, dt), self._dem_around(pos), "start")
         leg, stuck = 0, 0
         total = cfg.traverse.distance_m
         while self.odometer_m < total - 0.05:
             if leg + 1 >= len(self.route):
+                if rc.loop:
+                    break  # back at the start
                 raise SimError(f"strategic route of world {self.world.name} ended after {self.odometer_m:.0f} m")
             a, b = self.route[leg], self.route[leg + 1]
             L = float(np.linalg.norm(b - a))
@@ -93,8 +100,9 @@ class Driver:
                 self.legs_done += 1
                 if rc.stop_s > 0:
                     self.n_stops += 1
-                    yield DriveSegment(_standstill(pos[0], pos[1], yaw, round(rc.stop_s / dt), dt),
-                                       self._dem_around(pos), "stop")
+                    n = round(rc.stop_s / dt)
+                    self.ticks += n
+                    yield DriveSegment(_standstill(pos[0], pos[1], yaw, n, dt), self._dem_around(pos), "stop")
                 continue
             goal = a + min(s + self.planner.horizon_m, L) * u
             near_end = rc.loop and leg == len(self.route) - 2
@@ -110,8 +118,9 @@ class Driver:
             self.odometer_m += moved
             self.n_steps += 1
             xy = np.column_stack([path.x_m, path.y_m])
-            self.planner.record(xy)
+            self.planner.record(xy, dt * (self.ticks - 1 + np.arange(len(xy))))
             pos, yaw = xy[-1].copy(), float(path.yaw_rad[-1])
             tail = PlanarPath(dt, path.x_m[1:], path.y_m[1:], path.yaw_rad[1:], np.zeros(0, dtype=int))
             if len(tail.x_m):
+                self.ticks += len(tail.x_m)
                 yield DriveSegment(tail, dem, "drive")

@@ -48,6 +48,7 @@ class OrbitalProducts:
     image_shape: tuple[int, int] | None = None
     overview_gsd_m: float | None = None
     counts: dict[str, int] = field(default_factory=dict)
+    coverage: list[tuple[int, int]] = field(default_factory=list)  # the world tiles covered
 
 
 def coverage_tiles(world: TiledWorld, path_xy: np.ndarray, corridor_m: float) -> list[tuple[int, int]]:
@@ -78,7 +79,7 @@ def write_orbital_products(world: TiledWorld, path_xy: np.ndarray, cfg: SimConfi
     out = Path(out)
     oc, det = cfg.tiled.orbital, cfg.sensors.orbital
     tiles = coverage_tiles(world, path_xy, oc.corridor_m)
-    res = OrbitalProducts()
+    res = OrbitalProducts(coverage=tiles)
     rng = np.random.default_rng([cfg.seed, 300])
     sample = world.rock_model.sample(200_000, np.random.default_rng([cfg.seed, 301]))
     p_rock = detection_curve(sample, det)

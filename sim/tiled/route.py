@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
@@ -115,13 +116,15 @@ class LocalPlanner:
     def __init__(self, world: TiledWorld, cfg: KmRouteConfig, horizon_m: float = 50.0) -> None:
         self.world, self.cfg, self.horizon_m = world, cfg, horizon_m
         self.history_xy: list[tuple[float, float]] = []  # the driven path, every ~metre
+        self.history_t: list[float] = []  # and when the rover was there (s from the start)
         self.n_relaxed = 0  # plans that had to let the rover near its old path
 
-    def record(self, xy: np.ndarray) -> None:
-        """Append the driven positions ``xy`` (N, 2) to the history (thinned to ~1 m)."""
-        for p in np.reshape(xy, (-1, 2)):
+    def record(self, xy: np.ndarray, t_s: np.ndarray) -> None:
+        """Append the driven positions ``xy`` (N, 2) at times ``t_s`` (N,) to the history (~1 m apart)."""
+        for p, t in zip(np.reshape(xy, (-1, 2)), np.ravel(t_s)):
             if not self.history_xy or math.dist(self.history_xy[-1], p) >= 1.0:
                 self.history_xy.append((float(p[0]), float(p[1])))
+                self.history_t.append(float(t))
 
     def plan(self, start: np.ndarray, goal: np.ndarray, *, near_end_of_loop: bool = False) -> np.ndarray:
         """Polyline (M, 2) from ``start`` towards ``goal`` (or the reachable free cell nearest it)."""
@@ -251,3 +254,24 @@ def _smooth(xy: np.ndarray, blocked: np.ndarray, x0: float, y0: float, res: floa
         out.append(xy[j])
         k = j
     return np.array(out)
+
+
+def revisits(t_s: np.ndarray, xy_m: np.ndarray, radius_m: float = 20.0, after_s: float = 300.0) -> int:
+    """How many places the rover came back to: path points (N, 2) at times (N,) (at most ~1 m
+    apart) from which it later moved more than ``radius_m`` away and then, more than ``after_s``
+    after being there, came back within ``radius_m``."""
+    xy = np.reshape(np.asarray(xy_m, dtype=float), (-1, 2))
+    t = np.ravel(t_s)
+    if len(xy) < 2:
+        return 0
+    tree = cKDTree(xy)
+    n_back = 0
+    for i, nb in enumerate(tree.query_ball_point(xy, radius_m)):
+        nb = np.sort(np.asarray(nb))
+        later = nb[nb > i]
+        # the points after i stay in the ball up to the first index missing from the neighbours
+        run = later - np.arange(i + 1, i + 1 + len(later))
+        left_at = i + 1 + int(np.argmax(run != 0)) if np.any(run != 0) else (later[-1] + 1 if len(later) else i + 1)
+        back = later[(later > left_at) & (t[later] - t[i] > after_s)]
+        n_back += bool(len(back))
+    return n_back

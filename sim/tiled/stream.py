@@ -24,6 +24,7 @@ from sim.sensors.motion import CommandModel
 from sim.sensors.stereo import StereoBias, StereoCamera, calibration_error_base, simulate_stereo
 from sim.tiled.drive import Driver
 from sim.tiled.presets import resolve_tiled_config
+from sim.tiled.route import revisits
 from sim.tiled.world import TiledWorld
 
 log = logging.getLogger(__name__)
@@ -32,6 +33,21 @@ log = logging.getLogger(__name__)
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far (MB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def rss_mb() -> float:
+    """Resident memory of this process now (MB; /proc, else the peak)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:
+        return peak_rss_mb()
+
+
+def cpu_s() -> float:
+    """CPU time (user + system) of this process so far, all threads (s)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 class TiledSimulation:
@@ -165,6 +181,8 @@ class TiledSimulation:
             "n_drive_steps": self.driver.n_steps,
             "n_stops": self.driver.n_stops,
             "n_revisit_relaxed": self.driver.planner.n_relaxed,
+            "n_revisits": revisits(self.driver.planner.history_t, self.driver.planner.history_xy,
+                                   cfg.tiled.route.revisit_radius_m, cfg.tiled.route.revisit_after_s),
             "tiles_generated": self.world.tiles_made,
             "mean_window_rocks": a["window_rocks"] / max(a["windows"], 1),
             "peak_rss_mb_after_drive": round(peak_rss_mb(), 1),

@@ -17,7 +17,7 @@ from sim.craters import Craters, stamp_relief
 from sim.rocks import RockEllipsoids, Rocks, ellipsoid_meshes, rock_ellipsoids
 from sim.terrain import Heightmap
 
-ROCK_ID_K_BITS = 22  # rock id = (tile key << 22) | row: 4 M rocks per tile, ids below 2^54
+ROCK_ID_K_BITS = 20  # rock id = (tile key << 20) | row: 1 M rocks per tile; ids < 2^52 (exact as float64)
 _OFFSET = 1 << 15  # tile indices as non-negative ints in seeds and ids (|ix|, |iy| < 32768)
 
 

@@ -31,7 +31,7 @@ from sim.tiled.tiles import Tile, TileRocks, tile_dem, tile_meshes, tile_rock_se
 from sim.world import World
 
 CRATER_CLASSES = ((8.0, 64.0), (40.0, 256.0), (math.inf, 1024.0))  # (upper diameter m, cell m)
-_CELL_OFFSET = 1 << 20
+_CELL_OFFSET = 1 << 15  # crater id = class (2 bits) | cell x, y (16 bits each) | row (18 bits): < 2^52
 
 
 class LRUCache:
@@ -107,7 +107,7 @@ class TiledWorld:
         k, cx, cy = key
         _, lo, hi, cell = next(c for c in self._classes() if c[0] == k)
         rng = np.random.default_rng([self.seed & 0xFFFFFFFF, 0xC2A7E2, k, cx + _CELL_OFFSET, cy + _CELL_OFFSET])
-        ids = ((k << 60) | ((cx + _CELL_OFFSET) << 38) | ((cy + _CELL_OFFSET) << 16))
+        ids = (k << 50) | ((cx + _CELL_OFFSET) << 34) | ((cy + _CELL_OFFSET) << 18)
         return sample_craters(self.sfd, (cx * cell, (cx + 1) * cell, cy * cell, (cy + 1) * cell), rng,
                               d_lo_m=lo, d_hi_m=hi, id_base=ids)
 
