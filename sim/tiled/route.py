@@ -69,9 +69,9 @@ def plan_strategic(world: TiledWorld, length_m: float, cfg: KmRouteConfig, rng: 
     centre = np.array([0.5 * (xmin + xmax), 0.5 * (ymin + ymax)])
     side = min(xmax - xmin, ymax - ymin)
     if cfg.loop:
-        return _loop_route(world, centre, length_m, rng)
+        return _loop_route(world, centre, length_m, cfg, rng)
     for _restart in range(20):
-        pts = [centre + (rng.random(2) - 0.5) * 0.3 * side]
+        pts = [_free_start(world, centre, side, cfg, rng)]
         heading = rng.uniform(-np.pi, np.pi)
         total = 0.0
         while total < length_m:
@@ -96,15 +96,38 @@ def plan_strategic(world: TiledWorld, length_m: float, cfg: KmRouteConfig, rng: 
                    f"without coming back near itself; use a bigger tiled.size_m")
 
 
-def _loop_route(world: TiledWorld, centre: np.ndarray, length_m: float, rng: np.random.Generator) -> np.ndarray:
-    """A closed polygon of perimeter ~``length_m`` round the world centre, back to its start."""
+def _free_start(world: TiledWorld, centre: np.ndarray, side: float, cfg: KmRouteConfig, rng: np.random.Generator) -> np.ndarray:
+    """A start in the central part of the world on open, gentle ground: clear of crater interiors
+    the rover avoids (by 5 m), of big rocks and of slopes above the limit."""
+    for _ in range(200):
+        p = centre + (rng.random(2) - 0.5) * 0.3 * side
+        box = (p[0] - 12.0, p[0] + 12.0, p[1] - 12.0, p[1] + 12.0)
+        cr = world.craters_near(box, reach_radii=1.0)
+        deep = cr.diameter_m * depth_ratio(cr.degradation) > cfg.avoid_crater_depth_m
+        if np.any(np.linalg.norm(cr.xy_m[deep] - p, axis=1) < 0.5 * cr.diameter_m[deep] + 5.0):
+            continue
+        rocks = world.rocks_in(box, cfg.avoid_rock_diameter_m)
+        if np.any(np.linalg.norm(rocks.xy_m - p, axis=1) < 0.5 * rocks.diameter_m + 1.5):
+            continue
+        hm = world.heightmap(box)
+        g = hm.gradient_at(p[None] + np.array([[dx, dy] for dx in (-4, 0, 4) for dy in (-4, 0, 4)]))
+        if np.degrees(np.arctan(np.hypot(g[:, 0], g[:, 1]).max())) < cfg.max_slope_deg:
+            return p
+    raise SimError(f"no open ground to start on near the centre of world {world.name}")
+
+
+def _loop_route(world: TiledWorld, centre: np.ndarray, length_m: float, cfg: KmRouteConfig,
+                rng: np.random.Generator) -> np.ndarray:
+    """A closed polygon of perimeter ~``length_m`` from a free start near the world centre back to it."""
+    xmin, xmax, ymin, ymax = world.extent
+    start = _free_start(world, centre, min(xmax - xmin, ymax - ymin), cfg, rng)
     r = length_m / (2.0 * np.pi) * 1.02
     n = max(int(length_m / 200.0), 6)
     th = np.linspace(0.0, 2.0 * np.pi, n + 1) + rng.uniform(0, 2 * np.pi)
     rad = r * (1.0 + 0.1 * rng.standard_normal(n + 1))
     rad[-1] = rad[0]
-    pts = centre + np.column_stack([rad * np.cos(th), rad * np.sin(th)])
-    xmin, xmax, ymin, ymax = world.extent
+    ring = np.column_stack([rad * np.cos(th), rad * np.sin(th)])
+    pts = start - ring[0] + ring
     if pts[:, 0].min() < xmin or pts[:, 0].max() > xmax or pts[:, 1].min() < ymin or pts[:, 1].max() > ymax:
         raise SimError(f"a loop of {length_m:.0f} m does not fit world {world.name}")
     return pts
