@@ -8,6 +8,9 @@
     python -m sim.tiled.bench sfd DIR [DIR ...] --out docs/img
         simulated against model size-frequency of craters (every crater of the world) and rocks
         (the tiles along the route), one PNG per directory
+    python -m sim.tiled.bench drift SIMDIR RUNDIR [RUNDIR ...]
+        final and maximum horizontal error of ``fgslam run`` outputs (trajectory.tum) against the
+        bag's ground truth, as metres and % of the distance driven
 """
 
 from __future__ import annotations
@@ -131,6 +134,39 @@ def sfd(dirs: list[Path], out: Path, n_tiles: int = 12) -> None:
         print(f"wrote {path}")
 
 
+def _ground_truth_xy(bag: Path) -> tuple[np.ndarray, np.ndarray]:
+    from rosbags.highlevel import AnyReader
+
+    from sim.rosmsgs import typestore
+
+    t, xy = [], []
+    with AnyReader([bag], default_typestore=typestore()) as reader:
+        conns = [c for c in reader.connections if c.topic == "/ground_truth"]
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            p = reader.deserialize(raw, conn.msgtype).pose.pose.position
+            t.append(t_ns * 1e-9)
+            xy.append((p.x, p.y))
+    return np.array(t), np.array(xy)
+
+
+def drift(sim_dir: Path, runs: list[Path]) -> None:
+    import json
+
+    t_gt, xy_gt = _ground_truth_xy(Path(sim_dir) / "bag")
+    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy_gt, axis=0), axis=1))])
+    print("| run | backend | ATE (m) | final error (m) | final / distance (%) | max error (m) | wall (s) | x real time |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for r in runs:
+        est = np.loadtxt(Path(r) / "trajectory.tum")
+        m = json.loads((Path(r) / "metrics.json").read_text())
+        gt = np.column_stack([np.interp(est[:, 0], t_gt, xy_gt[:, k]) for k in range(2)])
+        err = np.linalg.norm(est[:, 1:3] - gt, axis=1)
+        d_end = float(np.interp(est[-1, 0], t_gt, dist))
+        rt = m["runtime"]
+        print(f"| {Path(r).name} | {m['backend']} | {m['ate']['rmse']:.2f} | {err[-1]:.2f} | {100 * err[-1] / d_end:.2f} "
+              f"| {err.max():.2f} | {rt['wall_s']:.0f} | {rt['real_time_factor']:.1f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     ap = argparse.ArgumentParser(prog="python -m sim.tiled.bench", description=__doc__.split("\n\n")[0])
@@ -146,11 +182,16 @@ def main(argv: list[str] | None = None) -> int:
     f = sub.add_parser("sfd")
     f.add_argument("dirs", type=Path, nargs="+")
     f.add_argument("--out", type=Path, default=Path("docs/img"))
+    r = sub.add_parser("drift")
+    r.add_argument("sim_dir", type=Path)
+    r.add_argument("runs", type=Path, nargs="+")
     a = ap.parse_args(argv)
     if a.cmd == "memory":
         memory(a.world, a.seed, a.distance_m, a.every_m, a.out)
     elif a.cmd == "table":
         table(a.dirs)
+    elif a.cmd == "drift":
+        drift(a.sim_dir, a.runs)
     else:
         sfd(a.dirs, a.out)
     return 0
