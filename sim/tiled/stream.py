@@ -71,8 +71,8 @@ class TiledSimulation:
         self._used = False
         self._acc = {"distance_m": 0.0, "ticks": 0, "frames": 0, "visible": 0, "detections": 0, "true": 0,
                      "moving_ticks": 0, "slip_sum": 0.0, "windows": 0, "window_rocks": 0}
-        self._p_dr: np.ndarray | None = None
-        self._p_end = None
+        self._p_dr: np.ndarray | None = None  # command dead reckoning after the last tick
+        self._dr_end = self._p_end = None  # reckoned and true position at the last tick
         self._imu_yaw_err = 0.0
         self.stats: dict = {}
 

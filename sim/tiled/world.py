@@ -20,7 +20,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.craters import INFLUENCE_RADIUS, Craters, CraterSFD, blocky, crater_relief, ejecta_blocks, sample_craters
+from sim.craters import (
+    INFLUENCE_RADIUS,
+    Craters,
+    CraterSFD,
+    blocky,
+    crater_relief,
+    ejecta_blocks,
+    sample_craters,
+    stamp_relief,
+)
 from sim.errors import SimError
 from sim.rock_sfd import GolombekRapp
 from sim.rocks import Rocks
@@ -48,6 +57,19 @@ class LRUCache:
             d.move_to_end(key)
             return d[key]
         value = self.factory(key)
+        self.made += 1
+        d[key] = value
+        if len(d) > self.maxsize:
+            d.popitem(last=False)
+        return value
+
+    def get(self, key, make: Callable):
+        """The value of ``key``, made by ``make()`` (instead of the factory) when missing."""
+        d = self._d
+        if key in d:
+            d.move_to_end(key)
+            return d[key]
+        value = make()
         self.made += 1
         d[key] = value
         if len(d) > self.maxsize:
@@ -89,7 +111,7 @@ class TiledWorld:
         self._cells = LRUCache(8192, self._make_cell)
         self._tiles = LRUCache(cfg.cache_tiles, self._make_tile)
         self._meshes = LRUCache(6, self._make_meshes)
-        self._blocks = LRUCache(1024, self._make_blocks)
+        self._blocks = LRUCache(1024, lambda key: None)  # crater id -> its ejecta blocks (filled by get)
         self._coarse = LRUCache(4, self._make_coarse)
 
     # -- craters -------------------------------------------------------------------------------
@@ -135,21 +157,11 @@ class TiledWorld:
         x, y = c.xy_m[:, 0], c.xy_m[:, 1]
         return c.subset((x >= xmin) & (x < xmax) & (y >= ymin) & (y < ymax))
 
-    def _make_blocks(self, crater_id: int):
-        raise KeyError(crater_id)  # filled by _blocks_of (needs the crater row)
-
-    def _blocks_of(self, craters: Craters):
+    def _blocks_of(self, craters: Craters) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (M, 2) and diameters (M,) of the ejecta blocks of ``craters`` (cached per crater)."""
         out_xy, out_d = [], []
         for k in range(len(craters)):
-            cid = int(craters.id[k])
-            if cid in self._blocks._d:
-                b = self._blocks(cid)
-            else:
-                b = ejecta_blocks(craters.subset([k]), self.seed, self.cfg.ejecta)
-                self._blocks._d[cid] = b
-                self._blocks._d.move_to_end(cid)
-                if len(self._blocks._d) > self._blocks.maxsize:
-                    self._blocks._d.popitem(last=False)
+            b = self._blocks.get(int(craters.id[k]), lambda k=k: ejecta_blocks(craters.subset([k]), self.seed, self.cfg.ejecta))
             out_xy.append(b.xy_m)
             out_d.append(b.diameter_m)
         if not out_xy:
@@ -209,7 +221,7 @@ class TiledWorld:
         """The fine DEM over ``extent`` (grown to the lattice), assembled from tiles."""
         xs, ys = self._lattice(extent)
         z = np.empty((len(ys), len(xs)))
-        res, m = self.cfg.resolution_m, self.cfg.tile_margin_m
+        res = self.cfg.resolution_m
         for ix, iy in self.tiles_overlapping((xs[0], xs[-1] + 1e-9, ys[0], ys[-1] + 1e-9)):
             t = self.tile(ix, iy)
             tx0, _, ty0, _ = t.terrain.extent
@@ -220,7 +232,6 @@ class TiledWorld:
             jx = np.rint((xs[cx] - tx0) / res).astype(int)
             jy = np.rint((ys[cy] - ty0) / res).astype(int)
             z[np.ix_(cy, cx)] = t.terrain.z_m[np.ix_(jy, jx)]
-        del m
         return Heightmap(z, (xs[0], xs[-1], ys[0], ys[-1]))
 
     def rocks_in(self, extent: tuple[float, float, float, float], min_diameter_m: float = 0.0) -> TileRocks:
@@ -272,8 +283,6 @@ class TiledWorld:
         ys = ext[2] + res * np.arange(round(C / res) + 1)
         z = self.noise.grid(xs, ys, min_spacing_m=2.0 * res)
         c = self.craters_near(ext, d_min_m=4.0 * res)
-        from sim.craters import stamp_relief
-
         z = stamp_relief(z, ext, c.xy_m, c.diameter_m, c.degradation)
         return Heightmap(z, ext)
 
