@@ -53,8 +53,7 @@ def memory(world: str, seed: int, distance_m: float, every_m: float, out: Path) 
                  "cpu_s": cpu_s() - c0, "wall_s": time.perf_counter() - t0, "stage": "with orbital products"})
     with open(Path(out) / "memory.csv", "w") as f:
         f.write("distance_m,rss_mb,peak_rss_mb,cpu_s,wall_s\n")
-        for r in rows:
-            f.write(f"{r['distance_m']:.1f},{r['rss_mb']:.1f},{r['peak_rss_mb']:.1f},{r['cpu_s']:.1f},{r['wall_s']:.1f}\n")
+        f.writelines(f"{r['distance_m']:.1f},{r['rss_mb']:.1f},{r['peak_rss_mb']:.1f},{r['cpu_s']:.1f},{r['wall_s']:.1f}\n" for r in rows)
     print("| distance (m) | RSS now (MB) | peak RSS (MB) | CPU (s) | wall (s) |")
     print("|---:|---:|---:|---:|---:|")
     for r in rows:

@@ -79,7 +79,7 @@ def _shadowed(dsm: np.ndarray, gsd: float, sun_az_deg: float, sun_el_deg: float)
     s = np.array([-math.sin(az), math.cos(az)])  # sunward step in (row, col): +y is -row
     n = np.array([s[1], -s[0]])
     c0 = np.array([(H - 1) / 2.0, (W - 1) / 2.0])
-    R = int(math.ceil(0.5 * math.hypot(H, W))) + 1
+    R = math.ceil(0.5 * math.hypot(H, W)) + 1
     u = np.arange(-R, R + 1, dtype=float)
     uu, ww = np.meshgrid(u, u)  # rotated grid: rows = w (across), columns = u (towards the sun)
     rows = c0[0] + uu * s[0] + ww * n[0]
@@ -126,8 +126,8 @@ class OrbitalRenderer:
         if W < 1 or H < 1:
             raise RenderError(f"extent {extent} is smaller than one {gsd} m pixel")
         # the surface model reaches far only on the sunward sides (where shadows come from)
-        far = int(math.ceil(self.shadow_margin_m(extent) / gsd))
-        near = int(math.ceil(ROCK_SPLAT_MARGIN_M / gsd))
+        far = math.ceil(self.shadow_margin_m(extent) / gsd)
+        near = math.ceil(ROCK_SPLAT_MARGIN_M / gsd)
         az = math.radians(self.lighting.sun_azimuth_deg)
         west, east = (far, near) if math.cos(az) < 0 else (near, far)
         south, north = (far, near) if math.sin(az) < 0 else (near, far)

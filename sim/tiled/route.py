@@ -22,9 +22,9 @@ import math
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
-from scipy.spatial import cKDTree
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
 
 from sim.craters import depth_ratio
 from sim.errors import SimError
@@ -245,8 +245,8 @@ def _mark_discs(grid: np.ndarray, centres: np.ndarray, radii: np.ndarray, x0: fl
     """Set the cells of ``grid`` (ny, nx) within ``radii`` (K,) of ``centres`` (K, 2) to ``value``."""
     ny, nx = grid.shape
     for (cx, cy), r in zip(np.reshape(centres, (-1, 2)), np.ravel(radii)):
-        j0, j1 = max(int((cx - r - x0) / res), 0), min(int(math.ceil((cx + r - x0) / res)), nx - 1)
-        i0, i1 = max(int((cy - r - y0) / res), 0), min(int(math.ceil((cy + r - y0) / res)), ny - 1)
+        j0, j1 = max(int((cx - r - x0) / res), 0), min(math.ceil((cx + r - x0) / res), nx - 1)
+        i0, i1 = max(int((cy - r - y0) / res), 0), min(math.ceil((cy + r - y0) / res), ny - 1)
         if j1 < j0 or i1 < i0:
             continue
         jj = x0 + res * np.arange(j0, j1 + 1) - cx

@@ -16,7 +16,14 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from reloc.measurements import CmdVel, GroundTruthPose, ImuSample, Measurement, RockObservations, WheelOdometry
+from reloc.measurements import (
+    CmdVel,
+    GroundTruthPose,
+    ImuSample,
+    Measurement,
+    RockObservations,
+    WheelOdometry,
+)
 from sim.config import SimConfig, validate
 from sim.rover import terrain_poses
 from sim.sensors.imu import ImuModel

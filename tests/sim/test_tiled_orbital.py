@@ -37,7 +37,7 @@ def products(tmp_path_factory):
 
 
 def test_crater_appears_at_its_pixel(products):
-    cfg, world, crater, res = products
+    cfg, _world, crater, res = products
     path = res.paths["orbital.tif"]
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
@@ -80,7 +80,7 @@ def test_crater_catalog_follows_its_detection_model(products):
     assert res.counts["craters_true"] == len(truth)
     assert len(np.unique(truth["id"])) == len(truth)  # ids survive a float reader
     assert np.all(truth["depth"] <= 0.2 * truth["diameter"] + 1e-3)
-    xmin, xmax, ymin, ymax = world.extent
+    xmin, xmax, _ymin, _ymax = world.extent
     assert truth["x"].min() >= xmin and truth["x"].max() < xmax
     # big craters inside the coverage: found as often as the detection model says
     covered = set(res.coverage)

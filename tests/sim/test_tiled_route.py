@@ -67,6 +67,6 @@ def test_long_drive_never_comes_back_and_keeps_off_obstacles():
 
 
 def test_a_loop_comes_back_to_its_start():
-    cfg, world, driver, segs, t, xy = _drive("sparse-5km", 260.0, seed=1, loop=True, stop_s=0.0)
+    _cfg, _world, driver, _segs, _t, xy = _drive("sparse-5km", 260.0, seed=1, loop=True, stop_s=0.0)
     assert np.linalg.norm(xy[-1] - xy[0]) < 25.0
     assert np.linalg.norm(driver.route[-1] - driver.route[0]) < 1e-9

@@ -5,15 +5,25 @@ does not grow with the traverse's length."""
 from __future__ import annotations
 
 from functools import cache
+
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from reloc.measurements import CmdVel, GroundTruthPose, ImuSample, RockObservations, WheelOdometry, sort_key
+from reloc.measurements import (
+    CmdVel,
+    GroundTruthPose,
+    ImuSample,
+    RockObservations,
+    WheelOdometry,
+    sort_key,
+)
 from sim.bag_writer import write_bag
 from sim.rosmsgs import typestore
 from sim.tiled.presets import preset_config
 from sim.tiled.stream import TiledSimulation, rss_mb
+import itertools
+
 
 @cache
 def _short():
@@ -24,7 +34,7 @@ def _short():
 def test_stream_is_time_ordered_and_complete():
     sim, meas = _short()
     keys = [sort_key(m) for m in meas]
-    assert all(a < b for a, b in zip(keys, keys[1:]))  # strictly ordered, no duplicates
+    assert all(a < b for a, b in itertools.pairwise(keys))  # strictly ordered, no duplicates
     kinds = {k: [m for m in meas if isinstance(m, k)] for k in (CmdVel, WheelOdometry, ImuSample, GroundTruthPose, RockObservations)}
     n = len(kinds[CmdVel])
     assert n == len(kinds[ImuSample]) == len(kinds[GroundTruthPose]) == len(kinds[WheelOdometry])
@@ -53,7 +63,7 @@ def test_ground_truth_is_continuous_across_drive_steps():
 
 
 def test_streamed_bag_reads_back_identically(tmp_path):
-    sim, meas = _short()
+    _sim, meas = _short()
     summary = write_bag(tmp_path / "bag", iter(meas))
     assert summary.n_messages == len(meas)
     ts = typestore()

@@ -59,11 +59,9 @@ def sim_cmd(
 
     from rich.console import Console
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-    from rich.table import Table
 
     from fgslam.io.sim_dir import write_sim_dir
     from sim.simulate import simulate
-
     from sim.tiled.presets import is_tiled
 
     if detections not in ("statistical", "image"):
@@ -90,31 +88,42 @@ def sim_cmd(
         progress.update(task, advance=1)
     wall = time.perf_counter() - t0
     s = run.stats
-    table = Table(title=f"fgslam sim: {run.world.name}, seed {seed}")
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
     rows = [
         ("distance", f"{s['distance_m']:.2f} m"),
         ("duration", f"{s['duration_s']:.1f} s"),
-        ("command dead-reckoning drift", f"{s['drift_pct']:.2f} %"),
-        ("stereo precision / recall", f"{s['stereo_precision']:.3f} / {s['stereo_recall']:.3f}"),
-        ("stereo frames / detections", f"{s['n_stereo_frames']} / {s['n_detections']}"),
+        *_sensor_rows(s),
         ("rocks / catalog entries", f"{s['n_rocks']} / {s['n_catalog']}"),
         ("catalog precision / recall", f"{s['catalog_precision']:.3f} / {s['catalog_recall']:.3f}"),
         ("bag", f"{summary.n_messages} messages, {summary.n_bytes / 1e6:.1f} MB"),
         ("wall time", f"{wall:.1f} s"),
     ]
+    _print_table(f"fgslam sim: {run.world.name}, seed {seed}", rows)
+    console.print(f"wrote {out}")
+
+
+def _sensor_rows(s: dict) -> list[tuple[str, str]]:
+    return [
+        ("command dead-reckoning drift", f"{s['drift_pct']:.2f} %"),
+        ("stereo precision / recall", f"{s['stereo_precision']:.3f} / {s['stereo_recall']:.3f}"),
+        ("stereo frames / detections", f"{s['n_stereo_frames']} / {s['n_detections']}"),
+    ]
+
+
+def _print_table(title: str, rows: list[tuple[str, str]]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
     for row in rows:
         table.add_row(*row)
     Console().print(table)
-    console.print(f"wrote {out}")
 
 
 def _sim_tiled(cfg, out: Path, overwrite: bool, console) -> None:
     """A kilometre-preset run: streamed to ``out`` with a progress bar, then a summary table."""
-    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
 
     from sim.tiled.outputs import simulate_to_bag
 
@@ -130,16 +139,11 @@ def _sim_tiled(cfg, out: Path, overwrite: bool, console) -> None:
 
         run = simulate_to_bag(cfg, out, overwrite=overwrite, progress=report)
     s = run.stats
-    table = Table(title=f"fgslam sim: {cfg.world}, seed {cfg.seed}")
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
     rows = [
         ("world", f"{run.config.tiled.size_m / 1000:.2f} km square, rocks k {run.config.tiled.rocks.k:.0%}, "
                   f"surface {run.config.tiled.craters.age_gyr} Gyr"),
         ("distance / duration", f"{s['distance_m']:.1f} m / {s['duration_s']:.0f} s ({s['mean_speed_mps']:.3f} m/s)"),
-        ("command dead-reckoning drift", f"{s['drift_pct']:.2f} %"),
-        ("stereo precision / recall", f"{s['stereo_precision']:.3f} / {s['stereo_recall']:.3f}"),
-        ("stereo frames / detections", f"{s['n_stereo_frames']} / {s['n_detections']}"),
+        *_sensor_rows(s),
         ("rock catalog (precision)", f"{s['n_catalog']} ({s['catalog_precision']:.3f})"),
         ("craters: world / coverage / catalog", f"{s['n_craters_true']} / {s['n_craters_in_coverage']} / {s['n_craters_catalog']}"),
         ("bag", f"{s['bag_messages']} messages, {s['bag_bytes'] / 1e6:.1f} MB"),
@@ -147,7 +151,5 @@ def _sim_tiled(cfg, out: Path, overwrite: bool, console) -> None:
         ("CPU time (real-time factor)", f"{s['cpu_s']:.1f} s ({s['real_time_factor_cpu']:.1f} x)"),
         ("peak RSS", f"{s['peak_rss_mb']:.0f} MB"),
     ]
-    for row in rows:
-        table.add_row(*row)
-    Console().print(table)
+    _print_table(f"fgslam sim: {cfg.world}, seed {cfg.seed}", rows)
     console.print(f"wrote {out} (back-end calibration for this run: {out / 'backend.yaml'})")
