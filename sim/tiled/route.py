@@ -150,20 +150,37 @@ class LocalPlanner:
                 self.history_t.append(float(t))
 
     def plan(self, start: np.ndarray, goal: np.ndarray, *, near_end_of_loop: bool = False) -> np.ndarray:
-        """Polyline (M, 2) from ``start`` towards ``goal`` (or the reachable free cell nearest it)."""
-        cfg = self.cfg
-        c = cfg.corridor_m
-        ext = (min(start[0], goal[0]) - c, max(start[0], goal[0]) + c, min(start[1], goal[1]) - c, max(start[1], goal[1]) + c)
-        blocked, cost, x0, y0 = self._costmap(ext, start, use_history=not near_end_of_loop)
-        path = self._search(blocked, cost, x0, y0, start, goal)
-        if path is None:  # walled in by its own old path: let it through (counted)
-            self.n_relaxed += 1
-            log.warning("local plan at (%.1f, %.1f): no way on that keeps clear of the old path", *start)
-            blocked, cost, x0, y0 = self._costmap(ext, start, use_history=False)
-            path = self._search(blocked, cost, x0, y0, start, goal)
-        if path is None:
+        """Polyline (M, 2) from ``start`` towards ``goal``. Where the goal cannot be reached, goals
+        turned by up to 120 deg about the rover are tried, then the reachable cell nearest the
+        goal; only when the old path walls the rover in is the revisit rule dropped (counted)."""
+        use_history = not near_end_of_loop
+        best = None
+        d = goal - start
+        for turn in (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 120.0, -120.0):
+            c, s_ = math.cos(math.radians(turn)), math.sin(math.radians(turn))
+            g = start + np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1]])
+            found = self._plan_to(start, g, use_history)
+            if found is None:
+                continue
+            path, reached = found
+            if reached:
+                return path
+            if best is None:
+                best = path  # the partial plan towards the leg's own goal first
+        if best is not None:
+            return best
+        self.n_relaxed += 1
+        log.warning("local plan at (%.1f, %.1f): no way on that keeps clear of the old path", *start)
+        found = self._plan_to(start, goal, use_history=False)
+        if found is None:
             raise SimError(f"local planner: no free path from ({start[0]:.1f}, {start[1]:.1f}) in world {self.world.name}")
-        return path
+        return found[0]
+
+    def _plan_to(self, start: np.ndarray, goal: np.ndarray, use_history: bool):
+        c = self.cfg.corridor_m
+        ext = (min(start[0], goal[0]) - c, max(start[0], goal[0]) + c, min(start[1], goal[1]) - c, max(start[1], goal[1]) + c)
+        blocked, cost, x0, y0 = self._costmap(ext, start, use_history)
+        return self._search(blocked, cost, x0, y0, start, goal)
 
     def _costmap(self, ext, start, use_history: bool):
         cfg, res = self.cfg, self.cfg.cell_m
@@ -184,11 +201,12 @@ class LocalPlanner:
             _mark_discs(blocked, centres, radii, ext[0], ext[2], res)
         if use_history and self.history_xy:
             h = np.array(self.history_xy)
-            left = np.linalg.norm(h - start, axis=1) >= cfg.revisit_radius_m  # places it has left
-            h = h[left]
-            inside = (h[:, 0] > ext[0] - cfg.revisit_radius_m) & (h[:, 0] < ext[1] + cfg.revisit_radius_m) & (
-                h[:, 1] > ext[2] - cfg.revisit_radius_m) & (h[:, 1] < ext[3] + cfg.revisit_radius_m)
-            _mark_discs(blocked, h[inside], np.full(int(inside.sum()), cfg.revisit_radius_m + 1.0), ext[0], ext[2], res)
+            # places it has left (more than radius + 1 m away) are closed to radius + 0.5 m: the
+            # rover itself always stays outside what is closed
+            r = cfg.revisit_radius_m
+            h = h[np.linalg.norm(h - start, axis=1) >= r + 1.0]
+            inside = (h[:, 0] > ext[0] - r) & (h[:, 0] < ext[1] + r) & (h[:, 1] > ext[2] - r) & (h[:, 1] < ext[3] + r)
+            _mark_discs(blocked, h[inside], np.full(int(inside.sum()), r + 0.5), ext[0], ext[2], res)
         # the rover's own cell and its immediate surroundings stay usable (it is standing there)
         _mark_discs(blocked, np.reshape(start, (1, 2)), np.array([0.8]), ext[0], ext[2], res, value=False)
         cost = 1.0 + 2.0 * (np.clip(slope / cfg.max_slope_deg, 0, 1)) ** 2
@@ -224,7 +242,8 @@ class LocalPlanner:
             return None
         gi, gj = cell(goal)
         target = idx[gi, gj]
-        if not reach[target]:  # the reachable cell nearest the goal
+        reached = bool(reach[target])
+        if not reached:  # the reachable cell nearest the goal
             ii, jj = np.divmod(np.flatnonzero(reach), nx)
             k = int(np.argmin((ii - gi) ** 2 + (jj - gj) ** 2))
             target = int(ii[k] * nx + jj[k])
@@ -237,7 +256,7 @@ class LocalPlanner:
         ci, cj = np.divmod(chain, nx)
         xy = np.column_stack([x0 + cj * res, y0 + ci * res])
         xy[0] = start
-        return _smooth(xy, blocked, x0, y0, res)
+        return _smooth(xy, blocked, x0, y0, res), reached
 
 
 def _mark_discs(grid: np.ndarray, centres: np.ndarray, radii: np.ndarray, x0: float, y0: float, res: float,
@@ -279,22 +298,25 @@ def _smooth(xy: np.ndarray, blocked: np.ndarray, x0: float, y0: float, res: floa
     return np.array(out)
 
 
-def revisits(t_s: np.ndarray, xy_m: np.ndarray, radius_m: float = 20.0, after_s: float = 300.0) -> int:
+def revisits(t_s: np.ndarray, xy_m: np.ndarray, radius_m: float = 20.0, after_s: float = 300.0,
+             leave_margin_m: float = 1.0) -> int:
     """How many places the rover came back to: path points (N, 2) at times (N,) (at most ~1 m
-    apart) from which it later moved more than ``radius_m`` away and then, more than ``after_s``
-    after being there, came back within ``radius_m``."""
+    apart) from which it later moved more than ``radius_m + leave_margin_m`` away (it left) and
+    then, more than ``after_s`` after being there, came back within ``radius_m``."""
     xy = np.reshape(np.asarray(xy_m, dtype=float), (-1, 2))
     t = np.ravel(t_s)
     if len(xy) < 2:
         return 0
     tree = cKDTree(xy)
     n_back = 0
-    for i, nb in enumerate(tree.query_ball_point(xy, radius_m)):
-        nb = np.sort(np.asarray(nb))
-        later = nb[nb > i]
-        # the points after i stay in the ball up to the first index missing from the neighbours
+    for i, (near, wide) in enumerate(zip(tree.query_ball_point(xy, radius_m),
+                                         tree.query_ball_point(xy, radius_m + leave_margin_m))):
+        wide = np.sort(np.asarray(wide))
+        later = wide[wide > i]
+        # the points after i stay in the wider ball up to the first index missing from it
         run = later - np.arange(i + 1, i + 1 + len(later))
-        left_at = i + 1 + int(np.argmax(run != 0)) if np.any(run != 0) else (later[-1] + 1 if len(later) else i + 1)
-        back = later[(later > left_at) & (t[later] - t[i] > after_s)]
+        left_at = i + 1 + int(np.argmax(run != 0)) if np.any(run != 0) else len(xy)
+        near = np.asarray(near)
+        back = near[(near > left_at) & (t[near] - t[i] > after_s)]
         n_back += bool(len(back))
     return n_back
