@@ -8,7 +8,8 @@
 
 Their defaults differ from a yard run's: realistic stereo errors on (the systematic terms of
 docs/sim.md: centre error 0.25 radii, mounting 0.15 deg, range scale 0.003), no drift target (drift
-is what the slip, IMU and stereo models give), the orbital catalog at HiRISE resolution (0.25 m/px,
+is what the slip, IMU and stereo models give), a tactical-grade gyro (1 deg/h bias, MER's LN-200
+class), the orbital catalog at HiRISE resolution (0.25 m/px,
 rocks under 3 px never found, recall counted over the detectable rocks), and a cruise speed of
 0.12 m/s (the yard presets' mean speeds are 0.07-0.14 m/s; with stops and turns the mean comes out
 near 0.1 m/s).
@@ -26,6 +27,10 @@ from sim.config import SimConfig, SimConfigError, resolve_orbital
 KM_CRUISE_SPEED_MPS = 0.12
 REALISTIC_STEREO = {"centre_error_frac": 0.25, "extrinsic_sigma_deg": 0.15, "depth_scale_sigma": 0.003}
 HIRISE_CATALOG = {"gsd_m": 0.25, "min_size_px": 3.0, "recall_basis": "detectable"}
+# A tactical-grade (LN-200 class, the MER rovers' IMU) gyro: 1 deg/h bias, rate random walk
+# 0.05 deg/h/sqrt(h). The yards' 2e-7 rad/s/sqrt(s) walk is harmless over 15 minutes but alone
+# turns the yaw by ~57 deg in 12 hours: not a real rover IMU.
+TACTICAL_GYRO = {"gyro_bias_sigma_radps": 4.85e-6, "gyro_bias_walk_radps_rsqrt_s": 4.0e-9}
 
 
 @dataclass(frozen=True)
@@ -64,7 +69,8 @@ def preset_overrides(name: str) -> dict:
         "world": name,
         "traverse": {"distance_m": p.traverse_m},
         "rover": {"cruise_speed_mps": KM_CRUISE_SPEED_MPS},
-        "sensors": {"cmd": {"target_drift_pct": None}, "stereo": dict(REALISTIC_STEREO), "orbital": dict(HIRISE_CATALOG)},
+        "sensors": {"cmd": {"target_drift_pct": None}, "stereo": dict(REALISTIC_STEREO), "orbital": dict(HIRISE_CATALOG),
+                    "imu": dict(TACTICAL_GYRO)},
         "tiled": {"terrain": {"relief_m": p.relief_m, "hurst": p.hurst}, "rocks": {"k": p.rock_k},
                   "craters": {"age_gyr": p.crater_age_gyr}},
     }
