@@ -104,4 +104,4 @@ class TiledWorldConfig:
     ejecta: EjectaConfig = field(default_factory=EjectaConfig)
     route: KmRouteConfig = field(default_factory=KmRouteConfig)
     orbital: OrbitalProductsConfig = field(default_factory=OrbitalProductsConfig)
-    chunk_s: float = 30.0  # sensors are simulated and written this much drive time at a time
+    chunk_s: float = 600.0  # sensors run on one drive step or stop at a time, split into chunks of at most this

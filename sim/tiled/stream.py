@@ -89,13 +89,16 @@ class TiledSimulation:
             raise RuntimeError("TiledSimulation.measurements() can be consumed only once")
         self._used = True
         pending, tick, T_prev = None, 0, None
+        n_max = max(round(self.config.tiled.chunk_s * self.config.sensors.imu.rate_hz), 2)
         for seg in self.driver.segments():
-            T = terrain_poses(seg.terrain, seg.path, self.config.rover)
-            if pending is not None:
-                yield from self._sense(pending[0], pending[1], T_prev, T[0])
-                T_prev = pending[0][-1]
-            pending = (T, tick)
-            tick += len(T)
+            T_seg = terrain_poses(seg.terrain, seg.path, self.config.rover)
+            for k in range(0, len(T_seg), n_max):  # long stops come in bounded chunks
+                T = T_seg[k:k + n_max]
+                if pending is not None:
+                    yield from self._sense(pending[0], pending[1], T_prev, T[0])
+                    T_prev = pending[0][-1]
+                pending = (T, tick)
+                tick += len(T)
         yield from self._sense(pending[0], pending[1], T_prev, None)
         self._finish()
 
