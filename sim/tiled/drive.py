@@ -16,7 +16,7 @@ from sim.config import SimConfig
 from sim.errors import SimError
 from sim.rover import PlanarPath, drive_route
 from sim.terrain import Heightmap
-from sim.tiled.route import LocalPlanner, plan_strategic
+from sim.tiled.route import LocalPlanner, clip_length, plan_strategic
 from sim.tiled.world import TiledWorld
 
 log = logging.getLogger(__name__)
@@ -36,17 +36,6 @@ def _standstill(x: float, y: float, yaw: float, n: int, dt: float) -> PlanarPath
     return PlanarPath(dt, np.full(n, x), np.full(n, y), np.full(n, yaw), np.zeros(0, dtype=int))
 
 
-def _truncate(poly: np.ndarray, length_m: float) -> np.ndarray:
-    """The first ``length_m`` of polyline ``poly`` (M, 2)."""
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    if s[-1] <= length_m:
-        return poly
-    k = int(np.searchsorted(s, length_m))
-    f = (length_m - s[k - 1]) / max(seg[k - 1], 1e-12)
-    return np.vstack([poly[:k], poly[k - 1] + f * (poly[k] - poly[k - 1])])
-
-
 class Driver:
     """Drives ``cfg.traverse.distance_m`` over ``world`` (see the module doc); :attr:`route` holds
     the strategic waypoints, the counters the progress."""
@@ -58,7 +47,7 @@ class Driver:
         # drive ends back at the start; otherwise plenty of route for the detours
         length = cfg.traverse.distance_m / 1.05 if rc.loop else 1.3 * cfg.traverse.distance_m + 2 * rc.strategic_max_m
         self.route = plan_strategic(world, length, rc, rng)
-        self.planner = LocalPlanner(world, rc)
+        self.planner = LocalPlanner(world, rc, speed_mps=cfg.rover.cruise_speed_mps)
         self.odometer_m = 0.0
         self.n_steps = 0
         self.n_stops = 0
@@ -106,8 +95,9 @@ class Driver:
                 continue
             goal = a + min(s + self.planner.horizon_m, L) * u
             near_end = rc.loop and leg == len(self.route) - 2
-            plan = self.planner.plan(pos, goal, near_end_of_loop=near_end)
-            step = plan if min(s + self.planner.horizon_m, L) >= L and L - s < rc.drive_step_m + 5 else _truncate(plan, rc.drive_step_m)
+            whole = min(s + self.planner.horizon_m, L) >= L and L - s < rc.drive_step_m + 5  # the leg's last step
+            plan = self.planner.plan(pos, goal, near_end_of_loop=near_end, check_m=math.inf if whole else rc.drive_step_m)
+            step = plan if whole else clip_length(plan, rc.drive_step_m)
             dem = self._dem_around(step)
             path = drive_route(dem, step, total - self.odometer_m, cfg.rover.cruise_speed_mps, cfg.rover, dt,
                                yaw0_rad=yaw, stop_at_end=True)

@@ -136,8 +136,8 @@ def _loop_route(world: TiledWorld, centre: np.ndarray, length_m: float, cfg: KmR
 class LocalPlanner:
     """Grid planner of the local stretch of a leg (see the module doc)."""
 
-    def __init__(self, world: TiledWorld, cfg: KmRouteConfig, horizon_m: float = 50.0) -> None:
-        self.world, self.cfg, self.horizon_m = world, cfg, horizon_m
+    def __init__(self, world: TiledWorld, cfg: KmRouteConfig, horizon_m: float = 50.0, speed_mps: float = 0.12) -> None:
+        self.world, self.cfg, self.horizon_m, self.speed_mps = world, cfg, horizon_m, speed_mps
         self.history_xy: list[tuple[float, float]] = []  # the driven path, every ~metre
         self.history_t: list[float] = []  # and when the rover was there (s from the start)
         self.n_relaxed = 0  # plans that had to let the rover near its old path
@@ -149,10 +149,14 @@ class LocalPlanner:
                 self.history_xy.append((float(p[0]), float(p[1])))
                 self.history_t.append(float(t))
 
-    def plan(self, start: np.ndarray, goal: np.ndarray, *, near_end_of_loop: bool = False) -> np.ndarray:
-        """Polyline (M, 2) from ``start`` towards ``goal``. Where the goal cannot be reached, goals
-        turned by up to 120 deg about the rover are tried, then the reachable cell nearest the
-        goal; only when the old path walls the rover in is the revisit rule dropped (counted)."""
+    def plan(self, start: np.ndarray, goal: np.ndarray, *, near_end_of_loop: bool = False,
+             check_m: float = math.inf) -> np.ndarray:
+        """Polyline (M, 2) from ``start`` towards ``goal``. Where the goal cannot be reached, or the
+        first ``check_m`` of the plan would bring the rover back near a place it left more than
+        ``revisit_after_s`` ago (a path that curls round past the places still open when it was
+        planned), goals turned by up to 120 deg about the rover are tried, then the reachable cell
+        nearest the goal; only when the old path walls the rover in is the revisit rule dropped
+        (counted)."""
         use_history = not near_end_of_loop
         best = None
         d = goal - start
@@ -163,6 +167,8 @@ class LocalPlanner:
             if found is None:
                 continue
             path, reached = found
+            if use_history and self.comes_back(clip_length(path, check_m)):
+                continue
             if reached:
                 return path
             if best is None:
@@ -175,6 +181,29 @@ class LocalPlanner:
         if found is None:
             raise SimError(f"local planner: no free path from ({start[0]:.1f}, {start[1]:.1f}) in world {self.world.name}")
         return found[0]
+
+    def comes_back(self, plan_xy: np.ndarray) -> bool:
+        """Would driving ``plan_xy`` (M, 2) (at ``speed_mps``) after the recorded history count as
+        coming back (:func:`revisits`, the same radii)?"""
+        if len(self.history_xy) < 2 or len(plan_xy) < 2:
+            return False
+        cfg = self.cfg
+        r, r_left = cfg.revisit_radius_m, cfg.revisit_radius_m + 1.0
+        seg = np.linalg.norm(np.diff(plan_xy, axis=0), axis=1)
+        n = np.maximum(np.ceil(seg).astype(int), 1)
+        dense = np.vstack([plan_xy[k] + np.linspace(0, 1, n[k], endpoint=False)[:, None] * (plan_xy[k + 1] - plan_xy[k])
+                           for k in range(len(seg))] + [plan_xy[-1:]])
+        h, th = np.array(self.history_xy), np.array(self.history_t)
+        t_plan_end = th[-1] + float(seg.sum()) / max(self.speed_mps, 1e-3)
+        near, _ = cKDTree(dense).query(h, distance_upper_bound=r)
+        cand = np.flatnonzero(np.isfinite(near) & (t_plan_end - th > cfg.revisit_after_s))
+        for i in cand:
+            seq = np.vstack([h[i + 1:], dense])
+            dist = np.linalg.norm(seq - h[i], axis=1)
+            out = np.flatnonzero(dist > r_left)
+            if len(out) and np.any(dist[max(out[0], len(h) - i - 1):] < r):
+                return True
+        return False
 
     def _plan_to(self, start: np.ndarray, goal: np.ndarray, use_history: bool):
         c = self.cfg.corridor_m
@@ -257,6 +286,19 @@ class LocalPlanner:
         xy = np.column_stack([x0 + cj * res, y0 + ci * res])
         xy[0] = start
         return _smooth(xy, blocked, x0, y0, res), reached
+
+
+def clip_length(poly: np.ndarray, length_m: float) -> np.ndarray:
+    """The first ``length_m`` of polyline ``poly`` (M, 2) (whole when shorter)."""
+    if not math.isfinite(length_m):
+        return poly
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= length_m:
+        return poly
+    k = int(np.searchsorted(s, length_m))
+    f = (length_m - s[k - 1]) / max(seg[k - 1], 1e-12)
+    return np.vstack([poly[:k], poly[k - 1] + f * (poly[k] - poly[k - 1])])
 
 
 def _mark_discs(grid: np.ndarray, centres: np.ndarray, radii: np.ndarray, x0: float, y0: float, res: float,
