@@ -29,6 +29,8 @@ from reloc.bag_spec import (
     CMD_VEL_TYPE,
     IMU_TYPE,
     ODOMETRY_TYPE,
+    ROCK_CLASS_ID,
+    ROCKS_TYPE,
     WORLD_FRAME,
     BagEncoding,
     TopicNames,
@@ -40,6 +42,7 @@ from reloc.measurements import (
     GroundTruthPose,
     ImuSample,
     Measurement,
+    RockObservations,
     WheelOdometry,
 )
 from sim.errors import SimError
@@ -168,6 +171,36 @@ class _Encoder:
         )
 
 
+def _fast_encoder(enc: _Encoder, encoding: BagEncoding):
+    """The precompiled encoders of :mod:`sim.bag_fast` when they reproduce rosbags' bytes on
+    sample messages of every type (else None: the rosbags path is used)."""
+    from sim.bag_fast import FastEncoder, check_against_rosbags
+
+    fast = FastEncoder(enc.frame_base, WORLD_FRAME, ROCK_CLASS_ID,
+                       (enc.imu_orientation_cov, enc.imu_gyro_cov, enc.imu_accel_cov),
+                       (enc.wheel_pose_cov, enc.wheel_twist_cov), encoding.rock_rotation_var)
+    rng = np.random.default_rng(0)
+    q = rng.standard_normal(4)
+    q /= np.linalg.norm(q)
+    from reloc.rock_bag import encode_rocks
+
+    samples = [
+        (CmdVel(1.25, 0.11, -0.02), 1_250_000_000, "cmd_vel", enc.cmd_vel, CMD_VEL_TYPE),
+        (ImuSample(2.5, q, rng.standard_normal(3), rng.standard_normal(3)), 2_500_000_001, "imu", enc.imu, IMU_TYPE),
+        (WheelOdometry(3.0, 0.1, 0.01), 3_000_000_000, "wheel", enc.wheel, ODOMETRY_TYPE),
+        (GroundTruthPose(4.0, rng.standard_normal(3), q), 4_000_000_000, "ground_truth", enc.ground_truth, ODOMETRY_TYPE),
+    ]
+    for n in range(4):
+        a = rng.standard_normal((n, 3, 3))
+        samples.append((RockObservations(5.0 + n, rng.standard_normal((n, 3)), a @ np.swapaxes(a, 1, 2) + np.eye(3),
+                                         rng.random(n) + 0.1, rng.random(n)), 5_000_000_000 + n, "rocks",
+                        lambda m, ns: encode_rocks(m, ns, enc), ROCKS_TYPE))
+    if check_against_rosbags(fast, enc, samples):
+        return fast
+    log.warning("fast CDR encoders disagree with rosbags on sample messages; using rosbags")
+    return None
+
+
 def _remove_bag_dir(path: Path) -> None:
     """Delete an existing bag directory, refusing anything that does not look like one."""
     if not path.is_dir():
@@ -207,6 +240,7 @@ def write_bag(
     path.parent.mkdir(parents=True, exist_ok=True)
 
     enc = _Encoder(frame_id_base, encoding)
+    fast = _fast_encoder(enc, encoding)
     routes = {
         CmdVel: (topics.cmd_vel, CMD_VEL_TYPE, enc.cmd_vel),
         ImuSample: (topics.imu, IMU_TYPE, enc.imu),
@@ -219,6 +253,10 @@ def write_bag(
             topics.topic_of(kind.name, codec), codec.msgtypes[0],
             lambda m, ns, encode=codec.encode: encode(m, ns, enc),
         )
+    encode = {t: (lambda m, ns, b=b, mt=mt: enc.ts.serialize_cdr(b(m, ns), mt)) for t, (_, mt, b) in routes.items()}
+    if fast is not None:  # byte-identical CDR written directly (checked against rosbags at start)
+        encode.update({CmdVel: fast.cmd_vel, ImuSample: fast.imu, WheelOdometry: fast.wheel,
+                       GroundTruthPose: fast.ground_truth, RockObservations: fast.rocks})
     counts: dict[str, int] = {}
     connections = {}
     ns_min, ns_max = None, None
@@ -233,7 +271,7 @@ def write_bag(
                         f"cannot write {type(m).__name__} to bag {path}: unknown type (neither a motion input, "
                         "ground truth nor the observation of a registered landmark kind with a bag layer)"
                     )
-                topic, msgtype, build = route
+                topic, msgtype, _ = route
                 ns = stamp_ns(m.t)
                 if ns < 0:
                     raise BagWriteError(
@@ -244,7 +282,7 @@ def write_bag(
                     conn = writer.add_connection(topic, msgtype, typestore=enc.ts)
                     connections[topic] = conn
                     counts[topic] = 0
-                writer.write(conn, ns, enc.ts.serialize_cdr(build(m, ns), msgtype))
+                writer.write(conn, ns, encode[type(m)](m, ns))
                 counts[topic] += 1
                 ns_min = ns if ns_min is None else min(ns_min, ns)
                 ns_max = ns if ns_max is None else max(ns_max, ns)

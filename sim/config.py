@@ -12,6 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from sim.errors import SimError
+from sim.tiled.config import TiledWorldConfig
 
 
 class SimConfigError(SimError, ValueError):
@@ -149,6 +150,8 @@ class OrbitalConfig:
     precision: float | None = None  # true / all catalog entries
     min_size_px: float | None = None  # smaller rocks are never detected
     detect_size_width_rel: float = 0.35  # softness of the size threshold of detection
+    # what ``recall`` counts: "all" true rocks (the yards) or the "detectable" ones (>= min_size_px)
+    recall_basis: str = "all"
 
 
 ORBITAL_PRESETS: dict[str, dict[str, float]] = {
@@ -169,8 +172,9 @@ class SensorsConfig:
 
 @dataclass(frozen=True)
 class SimConfig:
-    """A whole simulator run. ``world``: a preset name (my2020, my2021, my2022, cnes) or a Gazebo
-    model directory holding ``model.sdf``."""
+    """A whole simulator run. ``world``: a yard preset name (my2020, my2021, my2022, cnes), a
+    kilometre preset (plains-2km, rocky-1km, cratered-3km, sparse-5km: build its config with
+    :func:`sim.tiled.preset_config`) or a Gazebo model directory holding ``model.sdf``."""
 
     world: str = "my2021"
     seed: int = 0
@@ -179,6 +183,7 @@ class SimConfig:
     rover: RoverConfig = field(default_factory=RoverConfig)
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     t_start_s: float = 0.0
+    tiled: TiledWorldConfig = field(default_factory=TiledWorldConfig)  # the kilometre presets' world
 
 
 def resolve_orbital(cfg: OrbitalConfig) -> OrbitalConfig:
@@ -187,6 +192,8 @@ def resolve_orbital(cfg: OrbitalConfig) -> OrbitalConfig:
         raise SimConfigError(f"sensors.orbital.preset must be one of {sorted(ORBITAL_PRESETS)}, got {cfg.preset!r}")
     fill = {k: v for k, v in ORBITAL_PRESETS[cfg.preset].items() if getattr(cfg, k) is None}
     out = dataclasses.replace(cfg, **fill)
+    if out.recall_basis not in ("all", "detectable"):
+        raise SimConfigError(f"sensors.orbital.recall_basis must be 'all' or 'detectable', got {out.recall_basis!r}")
     if not (0.0 < out.recall <= 1.0 and 0.0 < out.precision <= 1.0):
         raise SimConfigError(f"orbital recall/precision must be in (0, 1], got {out.recall}, {out.precision}")
     return out

@@ -62,6 +62,49 @@ class Rocks:
             triangle_rock=np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64),
         )
 
+    @staticmethod
+    def from_vertex_blocks(vertices_m: np.ndarray, faces: np.ndarray, ids: np.ndarray, *,
+                           xyz_m: np.ndarray | None = None, size_m: np.ndarray | None = None,
+                           height_m: np.ndarray | None = None) -> Rocks:
+        """Rocks that share one mesh topology: ``vertices_m`` (R, V, 3) world metres, ``faces``
+        (F, 3) indices into each rock's V vertices, ``ids`` (R,); vectorised :meth:`from_meshes`.
+        ``xyz_m``, ``size_m``, ``height_m``: the rocks' centres, diameters and heights when they are
+        known (else the meshes' bounding-box centres, mean caliper widths and heights)."""
+        v = np.asarray(vertices_m, dtype=float)
+        n = len(v)
+        if n == 0:
+            return Rocks.from_meshes([])
+        if xyz_m is None or height_m is None:
+            lo, hi = v.min(axis=1), v.max(axis=1)
+        offsets = (np.arange(n, dtype=np.int64) * v.shape[1])[:, None, None]
+        return Rocks(
+            xyz_m=0.5 * (lo + hi) if xyz_m is None else np.asarray(xyz_m, dtype=float),
+            size_m=caliper_diameters(v[:, :, :2]) if size_m is None else np.asarray(size_m, dtype=float),
+            id=np.asarray(ids, dtype=np.int64),
+            height_m=hi[:, 2] - lo[:, 2] if height_m is None else np.asarray(height_m, dtype=float),
+            vertices_m=v.reshape(-1, 3),
+            triangles=(np.asarray(faces, dtype=np.int64)[None] + offsets).reshape(-1, 3).astype(np.int32),
+            triangle_rock=np.repeat(np.arange(n, dtype=np.int64), len(faces)),
+        )
+
+    @staticmethod
+    def concat(parts: list[Rocks]) -> Rocks:
+        """One :class:`Rocks` holding ``parts`` in order (meshes included)."""
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return Rocks.from_meshes([])
+        v_off = np.cumsum([0] + [len(p.vertices_m) for p in parts[:-1]])
+        r_off = np.cumsum([0] + [len(p) for p in parts[:-1]])
+        return Rocks(
+            xyz_m=np.vstack([p.xyz_m for p in parts]),
+            size_m=np.concatenate([p.size_m for p in parts]),
+            id=np.concatenate([p.id for p in parts]),
+            height_m=np.concatenate([p.height_m for p in parts]),
+            vertices_m=np.vstack([p.vertices_m for p in parts]),
+            triangles=np.vstack([p.triangles.astype(np.int64) + o for p, o in zip(parts, v_off)]).astype(np.int32),
+            triangle_rock=np.concatenate([p.triangle_rock + o for p, o in zip(parts, r_off)]),
+        )
+
     def subset(self, keep: np.ndarray) -> Rocks:
         """The rocks selected by boolean/index array ``keep`` (meshes included)."""
         idx = np.arange(len(self))[keep]
@@ -78,6 +121,13 @@ def caliper_diameter(xy: np.ndarray, n_dir: int = 8) -> float:
     ang = np.arange(n_dir) * np.pi / n_dir
     proj = xy @ np.stack([np.cos(ang), np.sin(ang)])
     return float(np.mean(proj.max(axis=0) - proj.min(axis=0)))
+
+
+def caliper_diameters(xy: np.ndarray, n_dir: int = 8) -> np.ndarray:
+    """Mean caliper widths (R,) of R point sets ``xy`` (R, P, 2) over ``n_dir`` directions."""
+    ang = np.arange(n_dir) * np.pi / n_dir
+    proj = xy @ np.stack([np.cos(ang), np.sin(ang)])
+    return np.mean(proj.max(axis=1) - proj.min(axis=1), axis=1)
 
 
 @cache
@@ -150,3 +200,68 @@ def generate_rocks(
         v = v + np.array([xy[k, 0], xy[k, 1], ground - v[:, 2].min() - embed_fraction * height])
         meshes.append((v, unit_f))
     return Rocks.from_meshes(meshes)
+
+
+@dataclass(frozen=True)
+class RockEllipsoids:
+    """Rocks as the squashed ellipsoids their meshes perturb: centres ``xyz_m`` (R, 3) (world;
+    the rock's true centre), ``semi_m`` (R, 3) semi-axes (x, y horizontal before the yaw, z up),
+    ``yaw_rad`` (R,). Diameter (mean caliper width of the horizontal ellipse) and height (2 semi z)
+    follow."""
+
+    xyz_m: np.ndarray
+    semi_m: np.ndarray
+    yaw_rad: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.yaw_rad)
+
+    @property
+    def height_m(self) -> np.ndarray:
+        return 2.0 * self.semi_m[:, 2]
+
+
+def _mean_caliper_unit(aspect: np.ndarray) -> np.ndarray:
+    """Mean caliper width of ellipses of semi-axes (1, aspect) (R,): mean of 2 sqrt(cos^2 + b^2 sin^2)."""
+    ang = np.arange(8) * np.pi / 8
+    return np.mean(2.0 * np.sqrt(np.cos(ang)[None] ** 2 + (aspect[:, None] * np.sin(ang)[None]) ** 2), axis=1)
+
+
+def rock_ellipsoids(xy_m: np.ndarray, diameter_m: np.ndarray, rng: np.random.Generator, ground, *,
+                    embed_fraction: float = 0.15) -> RockEllipsoids:
+    """Rocks of the shape model of :func:`generate_rocks` (aspect ratios 0.7-1 across, 0.35-0.7
+    up, random yaw) whose horizontal ellipse has a mean caliper width of ``diameter_m``, resting on
+    the ground ``ground(xy (N, 2)) -> z (N,)`` with ``embed_fraction`` of their height below the
+    lowest ground under their outline (sampled at the centre and 8 points of the ellipse)."""
+    d = np.asarray(diameter_m, dtype=float)
+    xy = np.reshape(np.asarray(xy_m, dtype=float), (-1, 2))
+    n = len(d)
+    aspect_y, aspect_z = rng.uniform(0.7, 1.0, n), rng.uniform(0.35, 0.7, n)
+    yaw = rng.uniform(0.0, 2.0 * np.pi, n)
+    a = d / _mean_caliper_unit(aspect_y) if n else np.zeros(0)
+    semi = np.column_stack([a, a * aspect_y, 0.5 * d * aspect_z])
+    th = np.arange(8) * np.pi / 4
+    ex, ey = np.cos(th)[None] * semi[:, :1], np.sin(th)[None] * semi[:, 1:2]
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    fx, fy = xy[:, :1] + ex * c - ey * s, xy[:, 1:] + ex * s + ey * c
+    if n:
+        z_ground = np.reshape(ground(np.column_stack([fx.ravel(), fy.ravel()])), fx.shape).min(axis=1)
+        base = np.minimum(z_ground, ground(xy))
+    else:
+        base = np.zeros(0)
+    z_centre = base + semi[:, 2] - embed_fraction * 2.0 * semi[:, 2]
+    return RockEllipsoids(np.column_stack([xy, z_centre]), semi, yaw)
+
+
+def ellipsoid_meshes(rocks: RockEllipsoids, rng: np.random.Generator, subdivisions: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Meshes of ``rocks``: icospheres scaled to the ellipsoids with a seeded 12 % radial
+    roughness per vertex (as :func:`generate_rocks`); vertices (R, V, 3) world, faces (F, 3)."""
+    unit_v, unit_f = icosphere(subdivisions)
+    n = len(rocks)
+    bumps = 1.0 + 0.12 * rng.standard_normal((n, len(unit_v)))
+    sm = rocks.semi_m
+    bx, by, bz = (bumps * unit_v[:, 0]) * sm[:, :1], (bumps * unit_v[:, 1]) * sm[:, 1:2], (bumps * unit_v[:, 2]) * sm[:, 2:3]
+    c, s = np.cos(rocks.yaw_rad)[:, None], np.sin(rocks.yaw_rad)[:, None]
+    p = rocks.xyz_m
+    v = np.stack([p[:, :1] + bx * c - by * s, p[:, 1:2] + bx * s + by * c, p[:, 2:3] + bz], axis=2)
+    return v, unit_f

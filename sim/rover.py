@@ -57,10 +57,13 @@ class _SurfaceProbe:
 
 
 def drive_route(
-    terrain: Heightmap, waypoints: np.ndarray, distance_m: float, v_cruise_mps: float, cfg: RoverConfig, dt_s: float
+    terrain: Heightmap, waypoints: np.ndarray, distance_m: float, v_cruise_mps: float, cfg: RoverConfig, dt_s: float,
+    *, yaw0_rad: float | None = None, stop_at_end: bool = False,
 ) -> PlanarPath:
     """Run the pure-pursuit controller on ``waypoints`` (W, 2) until ``distance_m`` (3D, along the
-    ground) has been driven; returns the planar path at ``dt_s``."""
+    ground) has been driven; returns the planar path at ``dt_s``. The rover starts at rest at the
+    first waypoint, heading ``yaw0_rad`` (default: along the first segment). ``stop_at_end``: a
+    drive step: brake to a stop at the route's end (or after ``distance_m``, whichever is first)."""
     wp = np.asarray(waypoints, dtype=float)
     if len(wp) < 2:
         raise SimError("a route needs at least two waypoints")
@@ -78,7 +81,7 @@ def drive_route(
         return wpl[i][0] + segl[i][0] * f, wpl[i][1] + segl[i][1] * f
 
     x, y = wpl[0]
-    yaw = math.atan2(segl[0][1], segl[0][0])
+    yaw = math.atan2(segl[0][1], segl[0][0]) if yaw0_rad is None else _wrap(float(yaw0_rad))
     v = w = 0.0
     odo = 0.0
     z_prev = probe(x, y)[0]
@@ -103,6 +106,8 @@ def drive_route(
         tx, ty = point_at(s_proj + cfg.lookahead_m)
         alpha = _wrap(math.atan2(ty - y, tx - x) - yaw)
         remaining = distance_m - odo
+        if stop_at_end:
+            remaining = min(remaining, swl[-1] - s_proj)
         if not turning and abs(alpha) > turn_on:
             turning, stop_recorded = True, False
         if turning:
@@ -136,7 +141,7 @@ def drive_route(
         yaws.append(yaw)
         if remaining <= 1e-3 or (remaining < 0.05 and v < 1e-3 and not turning):
             break
-        if s_proj >= swl[-1] - 1e-6 and not turning and v < 1e-4 and tick > 10:
+        if not stop_at_end and s_proj >= swl[-1] - 1e-6 and not turning and v < 1e-4 and tick > 10:
             raise SimError(f"route of {swl[-1]:.1f} m ended before the traverse of {distance_m:.1f} m")
     else:
         raise SimError(f"rover did not finish a {distance_m:.1f} m traverse in {max_ticks} ticks")

@@ -175,6 +175,11 @@ def build_world(name: str, seed: int, cfg: WorldGenConfig | None = None) -> Worl
             subdivisions=cfg.rock_icosphere_subdivisions,
         )
         return World(name=name, terrain=terrain, rocks=rocks, preset=p)
+    from sim.tiled.presets import TILED_PRESETS
+
+    if name in TILED_PRESETS:
+        raise SimError(f"{name!r} is a kilometre preset: it is streamed, not built in memory "
+                       f"(fgslam sim, or sim.tiled.simulate_to_bag(sim.tiled.preset_config({name!r}), out))")
     path = Path(name)
     if path.is_dir():
         from sim.gazebo_import import import_gazebo_world

@@ -70,24 +70,41 @@ def _profile_level(level: int) -> np.ndarray:
     return f
 
 
+@lru_cache(maxsize=1)
+def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Profiles (levels, rho) and per level the depth / D and the rim height / D."""
+    prof = np.stack([_profile_level(k) for k in range(DEGRADATION_LEVELS + 1)])
+    prof.setflags(write=False)
+    return prof, prof.max(axis=1) - prof[:, 0], prof.max(axis=1)
+
+
+def _levels(degradation) -> np.ndarray:
+    return np.rint(quantise(degradation) * DEGRADATION_LEVELS).astype(int)
+
+
+def _profile_of_level(rho: np.ndarray, level: int) -> np.ndarray:
+    """Linear interpolation in the uniform rho table (0 beyond it; faster than np.interp)."""
+    table = _tables()[0][level]
+    f = np.minimum(np.asarray(rho, dtype=float) * (1.0 / _D_RHO), len(table) - 1.0)
+    i = f.astype(np.intp)
+    f -= i
+    j = np.minimum(i + 1, len(table) - 1)
+    return table[i] * (1.0 - f) + table[j] * f
+
+
 def profile(rho: np.ndarray, degradation: float) -> np.ndarray:
     """Height / D at ``rho`` = r / R of a crater of ``degradation`` (quantised)."""
-    level = round(float(quantise(degradation)) * DEGRADATION_LEVELS)
-    return np.interp(rho, _RHO, _profile_level(level), right=0.0)
+    return _profile_of_level(rho, int(_levels(degradation)))
 
 
 def depth_ratio(degradation) -> np.ndarray:
     """Depth (rim crest to centre) / D for ``degradation`` (array, quantised)."""
-    lv = np.rint(quantise(degradation) * DEGRADATION_LEVELS).astype(int)
-    table = np.array([_profile_level(k).max() - _profile_level(k)[0] for k in range(DEGRADATION_LEVELS + 1)])
-    return table[lv]
+    return _tables()[1][_levels(degradation)]
 
 
 def rim_ratio(degradation) -> np.ndarray:
     """Rim crest height above the surroundings / D for ``degradation`` (array, quantised)."""
-    lv = np.rint(quantise(degradation) * DEGRADATION_LEVELS).astype(int)
-    table = np.array([_profile_level(k).max() for k in range(DEGRADATION_LEVELS + 1)])
-    return table[lv]
+    return _tables()[2][_levels(degradation)]
 
 
 def crater_relief(xy_m: np.ndarray, centres_m: np.ndarray, diameters_m: np.ndarray, degradation: np.ndarray) -> np.ndarray:
@@ -95,11 +112,12 @@ def crater_relief(xy_m: np.ndarray, centres_m: np.ndarray, diameters_m: np.ndarr
     diameters (C,), degradation (C,)), summed."""
     xy = np.reshape(np.asarray(xy_m, dtype=float), (-1, 2))
     out = np.zeros(len(xy))
-    for c, d, g in zip(np.reshape(centres_m, (-1, 2)), np.ravel(diameters_m), np.ravel(degradation)):
+    levels = _levels(np.ravel(degradation)).tolist()
+    for c, d, lv in zip(np.reshape(centres_m, (-1, 2)), np.ravel(diameters_m).tolist(), levels):
         rho = np.hypot(xy[:, 0] - c[0], xy[:, 1] - c[1]) / (0.5 * d)
         near = rho < INFLUENCE_RADIUS
         if np.any(near):
-            out[near] += d * profile(rho[near], g)
+            out[near] += d * _profile_of_level(rho[near], lv)
     return out
 
 
@@ -111,7 +129,9 @@ def stamp_relief(z_m: np.ndarray, extent: tuple[float, float, float, float], cen
     ny, nx = z.shape
     xmin, xmax, ymin, ymax = extent
     dx, dy = (xmax - xmin) / (nx - 1), (ymax - ymin) / (ny - 1)
-    for c, d, g in zip(np.reshape(centres_m, (-1, 2)), np.ravel(diameters_m), np.ravel(degradation)):
+    levels = _levels(np.ravel(degradation)).tolist()
+    for (cx, cy), d, lv in zip(np.reshape(centres_m, (-1, 2)).tolist(), np.ravel(diameters_m).tolist(), levels):
+        c = (cx, cy)
         reach = INFLUENCE_RADIUS * 0.5 * d
         j0, j1 = max(int(np.ceil((c[0] - reach - xmin) / dx)), 0), min(int(np.floor((c[0] + reach - xmin) / dx)), nx - 1)
         i0, i1 = max(int(np.ceil((c[1] - reach - ymin) / dy)), 0), min(int(np.floor((c[1] + reach - ymin) / dy)), ny - 1)
@@ -119,6 +139,6 @@ def stamp_relief(z_m: np.ndarray, extent: tuple[float, float, float, float], cen
             continue
         gx = xmin + dx * np.arange(j0, j1 + 1) - c[0]
         gy = ymin + dy * np.arange(i0, i1 + 1) - c[1]
-        rho = np.sqrt(gy[:, None] ** 2 + gx[None, :] ** 2) / (0.5 * d)
-        z[i0:i1 + 1, j0:j1 + 1] += d * profile(rho, g)
+        rho = np.sqrt(gy[:, None] ** 2 + gx[None, :] ** 2) * (2.0 / d)
+        z[i0:i1 + 1, j0:j1 + 1] += d * _profile_of_level(rho, lv)
     return z

@@ -72,7 +72,7 @@ class Craters:
         r = reach_radii * 0.5 * self.diameter_m
         dx = np.maximum(np.maximum(xmin - self.xy_m[:, 0], self.xy_m[:, 0] - xmax), 0.0)
         dy = np.maximum(np.maximum(ymin - self.xy_m[:, 1], self.xy_m[:, 1] - ymax), 0.0)
-        return self.subset(dx * dx + dy * dy < r * r)
+        return self.subset(dx * dx + dy * dy <= r * r)
 
 
 def sample_degradation(sfd: CraterSFD, diameter_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:

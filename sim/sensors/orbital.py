@@ -32,26 +32,43 @@ class CatalogTruth:
 
 
 def orbital_detection_probability(size_m: np.ndarray, cfg: OrbitalConfig) -> np.ndarray:
-    """Probability (R,) that the nadir detector finds each rock of diameter ``size_m`` (R,)."""
+    """Probability (R,) that the nadir detector finds each rock of diameter ``size_m`` (R,); the
+    mean over ``size_m`` (``recall_basis`` "all") or over its rocks of ``min_size_px`` and more
+    ("detectable") is the configured recall."""
+    return detection_curve(size_m, cfg)(size_m)
+
+
+def detection_curve(size_m: np.ndarray, cfg: OrbitalConfig):
+    """The detector's probability of detection as a function of rock diameter (m): zero below
+    ``min_size_px``, above it a logistic in log size whose midpoint is solved so that the expected
+    recall over the population ``size_m`` (R,) is the configured one."""
     cfg = resolve_orbital(cfg)
-    seen = size_m / cfg.gsd_m >= cfg.min_size_px
-    p = np.zeros(len(size_m))
+    def detectable(d):
+        return np.asarray(d, dtype=float) / cfg.gsd_m >= cfg.min_size_px
+
+    seen = detectable(size_m)
     if not np.any(seen):
-        return p
-    target = cfg.recall * len(size_m)
+        return lambda d: np.zeros(len(d))
+    target = cfg.recall * (seen.sum() if cfg.recall_basis == "detectable" else len(size_m))
     if target >= seen.sum():
         if cfg.recall < 1.0:
             log.warning("orbital recall %.3f needs rocks below min_size_px; all visible rocks are found", cfg.recall)
-        p[seen] = 1.0
-        return p
+        return lambda d: detectable(d).astype(float)
     x = np.log(size_m[seen]) / cfg.detect_size_width_rel
 
     def gap(c: float) -> float:
         return float(np.sum(1.0 / (1.0 + np.exp(-(x - c))))) - target
 
     c = brentq(gap, x.min() - 60.0, x.max() + 60.0, xtol=1e-8)
-    p[seen] = 1.0 / (1.0 + np.exp(-(x - c)))
-    return p
+
+    def p_of(d):
+        d = np.asarray(d, dtype=float)
+        p = np.zeros(len(d))
+        ok = detectable(d)
+        p[ok] = 1.0 / (1.0 + np.exp(-(np.log(d[ok]) / cfg.detect_size_width_rel - c)))
+        return p
+
+    return p_of
 
 
 def simulate_catalog(world: World, cfg: OrbitalConfig, rng: np.random.Generator) -> CatalogTruth:

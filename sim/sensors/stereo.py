@@ -206,12 +206,18 @@ def _stereo_cov_cam(pc: np.ndarray, cam: StereoCamera, cfg: StereoConfig, sigma_
     return s_l[:, None, None] ** 2 * np.eye(3) + (s_r**2 - s_l**2)[:, None, None] * np.einsum("mi,mj->mij", u, u)
 
 
-def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, rng: np.random.Generator) -> StereoFrames:
-    """Rock detections for each base pose ``T_world_base`` (F, 4, 4) (one stereo frame each)."""
+def simulate_stereo(world: World, T_world_base: np.ndarray, cfg: StereoConfig, rng: np.random.Generator,
+                    bias: StereoBias | None = None) -> StereoFrames:
+    """Rock detections for each base pose ``T_world_base`` (F, 4, 4) (one stereo frame each).
+    ``bias``: the run's systematic errors (one entry of ``centre_frac`` per rock of ``world``);
+    None draws them from ``rng``."""
     cam = StereoCamera.from_config(cfg)
     F = len(T_world_base)
     rocks = world.rocks
-    bias = StereoBias.draw(len(rocks), cfg, rng)
+    if bias is None:
+        bias = StereoBias.draw(len(rocks), cfg, rng)
+    elif len(bias.centre_frac) != len(rocks):
+        raise SimError(f"stereo bias has {len(bias.centre_frac)} rock centre errors for {len(rocks)} rocks")
     fr, rk = visible_rocks(world, T_world_base, cfg)
     T_wc = T_world_base @ cam.T_base_cam
     pc = np.einsum("mji,mj->mi", T_wc[fr, :3, :3], rocks.xyz_m[rk] - T_wc[fr, :3, 3])

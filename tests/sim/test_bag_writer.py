@@ -238,3 +238,29 @@ def test_stamp_ns_rounds_to_nearest_nanosecond():
     assert stamp_ns(1.0000000004) == 1_000_000_000
     assert stamp_ns(1.0000000006) == 1_000_000_001
     assert stamp_ns(1_700_000_000.123456789) == 1_700_000_000_123_456_768  # float64 spacing
+
+
+def test_fast_encoders_match_rosbags_and_a_mismatch_falls_back(stream, tmp_path, monkeypatch, caplog):
+    """The precompiled encoders write the bytes rosbags writes (same bag either way); if they ever
+    disagree on the sample messages, the writer says so and uses rosbags."""
+    import sim.bag_fast as fast
+    import sim.bag_writer as bw
+
+    a = write_bag(tmp_path / "fast", stream)
+    monkeypatch.setattr(bw, "_fast_encoder", lambda enc, encoding: None)
+    b = write_bag(tmp_path / "slow", stream)
+    monkeypatch.undo()
+    assert a.counts == b.counts
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([tmp_path / "fast"]) as fa, AnyReader([tmp_path / "slow"]) as sl:
+        raw_a = [(c.topic, t, bytes(d)) for c, t, d in fa.messages()]
+        raw_b = [(c.topic, t, bytes(d)) for c, t, d in sl.messages()]
+    assert raw_a == raw_b  # byte for byte
+    ra = read_bag(tmp_path / "fast")
+    monkeypatch.setattr(fast.FastEncoder, "imu", lambda self, m, ns: b"\x00\x01\x00\x00broken")
+    with caplog.at_level("WARNING"):
+        c = write_bag(tmp_path / "fallback", stream)
+    assert "disagree with rosbags" in caplog.text
+    assert c.counts == a.counts
+    assert len(read_bag(tmp_path / "fallback").measurements) == len(ra.measurements)

@@ -1,4 +1,4 @@
-"""``fgslam sim``: simulate a traverse in a Mars yard and write its bag, catalog and world files."""
+"""``fgslam sim``: simulate a traverse (a Mars yard or a kilometre world) and write its bag, catalogs and world files."""
 
 from __future__ import annotations
 
@@ -18,10 +18,14 @@ def load_sim_config(world: str | None, seed: int | None, distance_m: float | Non
     from reloc.config import config_from_dict
     from reloc.errors import ConfigError
     from sim.config import SimConfig
+    from sim.tiled.presets import is_tiled, preset_config
 
     data = sim_overrides(read_yaml_mapping(config, "simulator config")) if config is not None else {}
-    try:
-        cfg = config_from_dict(SimConfig, data)
+    name = world if world is not None else data.get("world", SimConfig.world)
+    seed_ = seed if seed is not None else data.get("seed", SimConfig.seed)
+    try:  # a kilometre preset's defaults first, the file's values over them
+        base = preset_config(name, seed_) if isinstance(name, str) and is_tiled(name) else None
+        cfg = config_from_dict(SimConfig, data, base=base)
     except ConfigError as exc:
         raise ConfigError(f"{config}: {exc}") from None
     cfg = dataclasses.replace(cfg, world=cfg.world if world is None else world, seed=cfg.seed if seed is None else seed)
@@ -32,7 +36,7 @@ def load_sim_config(world: str | None, seed: int | None, distance_m: float | Non
 
 @app.command("sim")
 def sim_cmd(
-    world: str | None = typer.Option(None, "--world", help="World preset (my2020, my2021, my2022, cnes) or a Gazebo model directory [default: the --config file's, else my2021]."),
+    world: str | None = typer.Option(None, "--world", help="World preset: a yard (my2020, my2021, my2022, cnes), a kilometre world (plains-2km, rocky-1km, cratered-3km, sparse-5km) or a Gazebo model directory [default: the --config file's, else my2021]."),
     seed: int | None = typer.Option(None, "--seed", help="Seed of every random process of the run [default: the --config file's, else 0]."),
     out: Path = typer.Option(..., "--out", help="Output directory (bag/, catalog.csv, rocks_true.csv, world.yaml, orbital.png)."),
     distance_m: float | None = typer.Option(None, "--distance-m", help="Traverse length in metres (default: the preset's)."),
@@ -51,16 +55,21 @@ def sim_cmd(
 
     from rich.console import Console
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-    from rich.table import Table
 
     from fgslam.io.sim_dir import sim_output_dir, write_sim_files
     from sim.simulate import simulate
+    from sim.tiled.presets import is_tiled
 
     if detections not in ("statistical", "image"):
         raise typer.BadParameter(f"--detections must be 'statistical' or 'image', got {detections!r}")
     console = Console(stderr=True)
     t0 = time.perf_counter()
     cfg = load_sim_config(world, seed, distance_m, config)
+    if is_tiled(cfg.world):
+        if detections != "statistical":
+            raise typer.BadParameter("--detections image is for the yards; the kilometre worlds use the sensor models")
+        _sim_tiled(cfg, out, overwrite, console)
+        return
     with sim_output_dir(out, overwrite) as od, \
             Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                      console=console, transient=True) as progress:
@@ -77,21 +86,71 @@ def sim_cmd(
         progress.update(task, advance=1)
     wall = time.perf_counter() - t0
     s = run.stats
-    table = Table(title=f"fgslam sim: {run.world.name}, seed {cfg.seed}")
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
     rows = [
         ("distance", f"{s['distance_m']:.2f} m"),
         ("duration", f"{s['duration_s']:.1f} s"),
-        ("command dead-reckoning drift", f"{s['drift_pct']:.2f} %"),
-        ("stereo precision / recall", f"{s['stereo_precision']:.3f} / {s['stereo_recall']:.3f}"),
-        ("stereo frames / detections", f"{s['n_stereo_frames']} / {s['n_detections']}"),
+        *_sensor_rows(s),
         ("rocks / catalog entries", f"{s['n_rocks']} / {s['n_catalog']}"),
         ("catalog precision / recall", f"{s['catalog_precision']:.3f} / {s['catalog_recall']:.3f}"),
         ("bag", f"{summary.n_messages} messages, {summary.n_bytes / 1e6:.1f} MB"),
         ("wall time", f"{wall:.1f} s"),
     ]
+    _print_table(f"fgslam sim: {run.world.name}, seed {cfg.seed}", rows)
+    console.print(f"wrote {out}")
+
+
+def _sensor_rows(s: dict) -> list[tuple[str, str]]:
+    return [
+        ("command dead-reckoning drift", f"{s['drift_pct']:.2f} %"),
+        ("stereo precision / recall", f"{s['stereo_precision']:.3f} / {s['stereo_recall']:.3f}"),
+        ("stereo frames / detections", f"{s['n_stereo_frames']} / {s['n_detections']}"),
+    ]
+
+
+def _print_table(title: str, rows: list[tuple[str, str]]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
     for row in rows:
         table.add_row(*row)
     Console().print(table)
-    console.print(f"wrote {out}")
+
+
+def _sim_tiled(cfg, out: Path, overwrite: bool, console) -> None:
+    """A kilometre-preset run: streamed into ``out``'s staging directory with a progress bar,
+    committed whole (:mod:`fgslam.io.outdir`), then a summary table."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from fgslam.io.sim_dir import sim_output_dir
+    from sim.tiled.outputs import simulate_to_bag
+
+    with sim_output_dir(out, overwrite) as od, Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f}"),
+                  TimeElapsedColumn(), console=console, transient=True) as progress:
+        tasks: dict = {}
+
+        def report(stage: str, done: float, total: float) -> None:
+            if stage not in tasks:
+                label = {"drive": f"driving {cfg.world} (m)", "catalogs": "catalogs (tiles)", "image": "orbital image (tiles)"}
+                tasks[stage] = progress.add_task(label.get(stage, stage), total=total)
+            progress.update(tasks[stage], completed=done, total=total)
+
+        run = simulate_to_bag(cfg, od.staging, overwrite=False, progress=report)
+        od.commit()
+    s = run.stats
+    rows = [
+        ("world", f"{run.config.tiled.size_m / 1000:.2f} km square, rocks k {run.config.tiled.rocks.k:.0%}, "
+                  f"surface {run.config.tiled.craters.age_gyr} Gyr"),
+        ("distance / duration", f"{s['distance_m']:.1f} m / {s['duration_s']:.0f} s ({s['mean_speed_mps']:.3f} m/s)"),
+        *_sensor_rows(s),
+        ("rock catalog (precision)", f"{s['n_catalog']} ({s['catalog_precision']:.3f})"),
+        ("craters: world / coverage / catalog", f"{s['n_craters_true']} / {s['n_craters_in_coverage']} / {s['n_craters_catalog']}"),
+        ("bag", f"{s['bag_messages']} messages, {s['bag_bytes'] / 1e6:.1f} MB"),
+        ("wall time (real-time factor)", f"{s['wall_total_s']:.1f} s ({s['real_time_factor']:.1f} x)"),
+        ("CPU time (real-time factor)", f"{s['cpu_s']:.1f} s ({s['real_time_factor_cpu']:.1f} x)"),
+        ("peak RSS", f"{s['peak_rss_mb']:.0f} MB"),
+    ]
+    _print_table(f"fgslam sim: {cfg.world}, seed {cfg.seed}", rows)
+    console.print(f"wrote {out} (back-end calibration for this run: {out / 'backend.yaml'})")

@@ -1,0 +1,136 @@
+"""The kilometre presets and their configuration.
+
+| preset | world | rocks k | surface age | relief (512 m octave) | default traverse |
+| plains-2km | 2.4 km | 5 % | 0.3 Gyr (moderate craters) | 8 m | 2 km |
+| rocky-1km | 1.4 km | 15 % | 0.5 Gyr | 10 m | 1 km |
+| cratered-3km | 3.2 km | 3 % (few rocks) | 3.0 Gyr (saturated below ~100 m) | 6 m | 3 km |
+| sparse-5km | 5 km | 2 % | 0.01 Gyr (young: few craters) | 6 m | 5 km |
+
+Their defaults differ from a yard run's: realistic stereo errors on (the systematic terms of
+docs/sim.md: centre error 0.25 radii, mounting 0.15 deg, range scale 0.003), no drift target (drift
+is what the slip, IMU and stereo models give), a tactical-grade gyro (1 deg/h bias, MER's LN-200
+class), the orbital catalog at HiRISE resolution (0.25 m/px,
+rocks under 3 px never found, recall counted over the detectable rocks), and a cruise speed of
+0.12 m/s (the yard presets' mean speeds are 0.07-0.14 m/s; with stops and turns the mean comes out
+near 0.1 m/s).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from reloc.config import config_from_dict
+from sim.config import SimConfig, SimConfigError, resolve_orbital
+
+KM_CRUISE_SPEED_MPS = 0.12
+REALISTIC_STEREO = {"centre_error_frac": 0.25, "extrinsic_sigma_deg": 0.15, "depth_scale_sigma": 0.003}
+HIRISE_CATALOG = {"gsd_m": 0.25, "min_size_px": 3.0, "recall_basis": "detectable"}
+# A tactical-grade (LN-200 class, the MER rovers' IMU) gyro: 1 deg/h bias, rate random walk
+# 0.05 deg/h/sqrt(h). The yards' 2e-7 rad/s/sqrt(s) walk is harmless over 15 minutes but alone
+# turns the yaw by ~57 deg in 12 hours: not a real rover IMU.
+TACTICAL_GYRO = {"gyro_bias_sigma_radps": 4.85e-6, "gyro_bias_walk_radps_rsqrt_s": 4.0e-9}
+
+
+@dataclass(frozen=True)
+class TiledPreset:
+    name: str
+    size_m: float
+    rock_k: float
+    crater_age_gyr: float
+    relief_m: float
+    hurst: float
+    traverse_m: float
+    summary: str
+
+
+TILED_PRESETS: dict[str, TiledPreset] = {
+    p.name: p
+    for p in (
+        TiledPreset("plains-2km", 2400.0, 0.05, 0.3, 8.0, 0.9, 2000.0, "plains, k 5 %, moderate craters"),
+        TiledPreset("rocky-1km", 1400.0, 0.15, 0.5, 10.0, 0.85, 1000.0, "rock field, k 15 %"),
+        TiledPreset("cratered-3km", 3200.0, 0.03, 3.0, 6.0, 0.9, 3000.0, "dense small craters, few rocks"),
+        TiledPreset("sparse-5km", 5000.0, 0.02, 0.01, 6.0, 0.95, 5000.0, "k 2 %, few craters: the hard case"),
+    )
+}
+
+
+def is_tiled(world: str) -> bool:
+    return world in TILED_PRESETS
+
+
+def preset_overrides(name: str) -> dict:
+    """The preset's configuration as a YAML-shaped mapping over :class:`sim.config.SimConfig`."""
+    if name not in TILED_PRESETS:
+        raise SimConfigError(f"unknown kilometre preset {name!r}: use one of {sorted(TILED_PRESETS)}")
+    p = TILED_PRESETS[name]
+    return {
+        "world": name,
+        "traverse": {"distance_m": p.traverse_m},
+        "rover": {"cruise_speed_mps": KM_CRUISE_SPEED_MPS},
+        "sensors": {"cmd": {"target_drift_pct": None}, "stereo": dict(REALISTIC_STEREO), "orbital": dict(HIRISE_CATALOG),
+                    "imu": dict(TACTICAL_GYRO)},
+        "tiled": {"terrain": {"relief_m": p.relief_m, "hurst": p.hurst}, "rocks": {"k": p.rock_k},
+                  "craters": {"age_gyr": p.crater_age_gyr}},
+    }
+
+
+def preset_config(name: str, seed: int = 0, overrides: dict | None = None) -> SimConfig:
+    """The :class:`SimConfig` of kilometre preset ``name`` with ``overrides`` (a YAML-shaped
+    mapping, unknown keys rejected) on top."""
+    cfg = config_from_dict(SimConfig, preset_overrides(name))
+    cfg = config_from_dict(SimConfig, overrides or {}, base=cfg)
+    return dataclasses.replace(cfg, world=name, seed=int(seed))
+
+
+def resolve_tiled_config(cfg: SimConfig) -> SimConfig:
+    """``cfg`` with every preset-dependent ``None`` filled in; the world grows (side x sqrt of the
+    length ratio) for traverses longer than the preset's. Rejects what the streaming path cannot do."""
+    if cfg.world not in TILED_PRESETS:
+        raise SimConfigError(f"{cfg.world!r} is not a kilometre preset ({sorted(TILED_PRESETS)})")
+    p = TILED_PRESETS[cfg.world]
+    if cfg.sensors.cmd.target_drift_pct is not None:
+        raise SimConfigError("sensors.cmd.target_drift_pct must be null on the kilometre presets: drift is what the "
+                             "models give (build the config with sim.tiled.preset_config)")
+    if cfg.traverse.duration_s is not None:
+        raise SimConfigError("traverse.duration_s must be null on the kilometre presets: the duration is what the "
+                             "drive takes (set rover.cruise_speed_mps or tiled.route.stop_s instead)")
+    distance = cfg.traverse.distance_m or p.traverse_m
+    t = cfg.tiled
+    size = t.size_m or p.size_m * max(1.0, math.sqrt(distance / p.traverse_m))
+    tiled = dataclasses.replace(
+        t, size_m=float(size),
+        terrain=dataclasses.replace(t.terrain, relief_m=t.terrain.relief_m if t.terrain.relief_m is not None else p.relief_m,
+                                    hurst=t.terrain.hurst if t.terrain.hurst is not None else p.hurst),
+        rocks=dataclasses.replace(t.rocks, k=t.rocks.k if t.rocks.k is not None else p.rock_k),
+        craters=dataclasses.replace(t.craters, age_gyr=t.craters.age_gyr if t.craters.age_gyr is not None else p.crater_age_gyr),
+    )
+    return dataclasses.replace(
+        cfg, tiled=tiled,
+        traverse=dataclasses.replace(cfg.traverse, distance_m=float(distance)),
+        rover=dataclasses.replace(cfg.rover, cruise_speed_mps=float(cfg.rover.cruise_speed_mps or KM_CRUISE_SPEED_MPS)),
+        sensors=dataclasses.replace(cfg.sensors, orbital=resolve_orbital(cfg.sensors.orbital)),
+    )
+
+
+def backend_calibration(cfg: SimConfig) -> dict:
+    """The ``backend_overrides`` block the back-ends need for this run's stereo errors (the
+    calibration states of docs/ekf.md and docs/smoother.md, sized by the simulated errors); empty
+    when the systematic terms are off."""
+    st = cfg.sensors.stereo
+    if not (st.extrinsic_sigma_deg or st.depth_scale_sigma or st.centre_error_frac):
+        return {}
+    ekf: dict = {"rock_cov_scale": 4.0} if st.centre_error_frac else {}
+    cal_e, cal_i = {}, {}
+    if st.extrinsic_sigma_deg:
+        cal_e.update(roll_pitch_sigma_deg=st.extrinsic_sigma_deg, yaw_sigma_deg=st.extrinsic_sigma_deg)
+        cal_i["yaw_sigma_deg"] = st.extrinsic_sigma_deg
+    if st.depth_scale_sigma:
+        cal_e["scale_sigma"] = cal_i["scale_sigma"] = st.depth_scale_sigma
+    if cal_e:
+        ekf["calibration"] = cal_e
+    out = {"ekf": ekf}
+    if cal_i:
+        out["isam2"] = {"calibration": cal_i}
+    return out
