@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import logging
+import multiprocessing as mp
 import os
 import signal
 import sys
@@ -67,13 +68,20 @@ def worker_initializer(parent_pid: int) -> None:
     to the whole group; the parent then stops its workers itself, without a traceback from each)."""
     die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the parent's handler (nor a deferred one)
 
 
-def kill_pool(pool) -> None:
+def kill_pool(pool, spare: frozenset = frozenset()) -> None:
     """Stop a ``ProcessPoolExecutor`` now: its workers are killed, pending work cancelled (the
-    pool's own shutdown would wait for every running task to finish)."""
+    pool's own shutdown would wait for every running task to finish).
+
+    A signal that lands while the pool forks its workers can leave one started but not yet in the
+    pool's table; multiprocessing would then wait for it at exit for ever. Every live child of
+    this process not in ``spare`` (those that were alive before the pool) is killed with the pool's.
+    """
     procs = getattr(pool, "_processes", None)  # private, but the only handle on the workers
-    procs = list(procs.values()) if isinstance(procs, dict) else []
+    procs = set(procs.values()) if isinstance(procs, dict) else set()
+    procs |= set(mp.active_children()) - set(spare)
     for p in procs:
         with contextlib.suppress(Exception):
             p.kill()
@@ -81,6 +89,38 @@ def kill_pool(pool) -> None:
     for p in procs:
         with contextlib.suppress(Exception):
             p.join(timeout=5.0)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the block forks workers; one that came is acted on (the
+    handler it would have met is called) when the block ends.
+
+    Raised while a pool forks, the exception from a signal lands in the middle of its bookkeeping
+    (a worker started but not yet recorded, then waited for at exit for ever) or inside an at-fork
+    hook, where Python prints and drops it (the run then goes on as if never signalled). Blocking
+    the signals in this thread would not do: any other thread (a progress bar's) still takes them.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+
+    def hold(signum, frame):
+        held.append(signum)
+
+    previous = {s: signal.signal(s, hold) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        if held:
+            s = held[0]
+            if callable(previous[s]):
+                previous[s](s, None)
+            elif previous[s] == signal.SIG_DFL:
+                signal.raise_signal(s)
 
 
 @contextlib.contextmanager

@@ -26,7 +26,7 @@ import numpy as np
 from fgslam.backends.registry import backend_class, make_backend
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FedFixes, FixProducer, FixSource, NoFixes, OnlineFixes, ReplayedFixes
-from fgslam.lifetime import kill_pool, worker_initializer
+from fgslam.lifetime import kill_pool, signals_deferred, worker_initializer
 from fgslam.runner import RunnerConfig, RunResult, run_backend
 
 log = logging.getLogger(__name__)
@@ -172,13 +172,15 @@ def _run_forked(online, wave1, wave2, fixes_of, workers, on_progress) -> dict[st
     # own on top of the ``workers`` computing ones, so a waiting replay never holds a core's turn
     # the workers die with this process whatever ends it (fgslam.lifetime): killed or
     # interrupted, a comparison leaves no orphan blocked on its queue
+    spare = frozenset(mp.active_children())  # children that are not this pool's
     pool = ProcessPoolExecutor(max_workers=workers + len(wave2), mp_context=ctx,
                                initializer=worker_initializer, initargs=(os.getpid(),))
     try:
         # FIFO: the reference pass starts first, the replays next (they stream its fixes),
-        # then the passes without relocalization
+        # then the passes without relocalization; the first submit forks every worker
         order = online + wave2 + [p for p in wave1 if p.mode == "none"]
-        futures: dict[Future, Pass] = {pool.submit(_worker, p, None): p for p in order}
+        with signals_deferred():
+            futures: dict[Future, Pass] = {pool.submit(_worker, p, None): p for p in order}
         while futures:
             done, _ = wait(list(futures), timeout=0.2, return_when=FIRST_COMPLETED)
             _drain(q, on_progress)
@@ -190,7 +192,7 @@ def _run_forked(online, wave1, wave2, fixes_of, workers, on_progress) -> dict[st
                     on_progress(p.label, res.t_end)
         _drain(q, on_progress)
     except BaseException:  # a failed pass, Ctrl-C, SIGTERM (fgslam.lifetime.Terminated): stop them all now
-        kill_pool(pool)
+        kill_pool(pool, spare)
         raise
     pool.shutdown(wait=True)
     ref = results[online[0].key]

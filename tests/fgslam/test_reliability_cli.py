@@ -225,7 +225,7 @@ def _alive(pids: list[int]) -> list[int]:
     return out
 
 
-def _start_and_signal(args: list[str], sig: int, n_children: int, timeout_s: float = 120.0):
+def _start_and_signal(args: list[str], sig: int, n_children: int, timeout_s: float = 120.0, settle_s: float = 0.3):
     """Start ``fgslam ARGS``, wait for ``n_children`` descendants, send ``sig`` to the parent only;
     returns (exit code, stderr, the descendants seen)."""
     # Ctrl-C raises KeyboardInterrupt even where the test runner's process ignores SIGINT
@@ -239,9 +239,9 @@ def _start_and_signal(args: list[str], sig: int, n_children: int, timeout_s: flo
         kids = _children(proc.pid)
         if len(kids) >= n_children:
             break
-        time.sleep(0.05)
+        time.sleep(0.05 if settle_s else 0.002)
     assert proc.poll() is None and len(kids) >= n_children, "the workers never started"
-    time.sleep(0.3)
+    time.sleep(settle_s)
     kids = _children(proc.pid)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
@@ -274,6 +274,33 @@ def test_compare_workers_die_with_it_and_the_previous_result_stays(tmp_path, lon
     assert {p.name: p.read_text() for p in out.iterdir() if not p.name.startswith(".staging-")} == before
     assert bool(list(out.glob(".staging-*"))) == (sig == signal.SIGKILL)  # a killed run cannot clean up
     assert read_manifest(out)["status"] == "complete"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_while_the_workers_are_forked_still_ends_the_comparison(tmp_path, long_dir, sig):
+    """Signalled as soon as the first worker exists (the pool still forking the others): the
+    comparison stops with the signal's code, no worker is left, and nothing is written (a signal
+    inside the fork's bookkeeping once left a worker waited for for ever, or was dropped)."""
+    out = tmp_path / "cmp"
+    rc, err, kids = _start_and_signal(["compare", str(long_dir), "--out", str(out)], sig, n_children=1, settle_s=0.0)
+    assert rc == 128 + sig, err[-2000:]
+    assert "Exception ignored" not in err, err[-2000:]
+    assert not _alive(kids), f"workers {kids} outlived their parent"
+    assert not out.exists() or not list(out.glob("results.json"))
+
+
+def test_signals_deferred_holds_a_signal_to_the_end_of_the_block():
+    from fgslam.lifetime import Terminated, signals_deferred, terminate_on_sigterm
+
+    done = []
+    with terminate_on_sigterm(), pytest.raises(Terminated):
+        with signals_deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the handler has had every chance to run
+            done.append("block finished")
+    assert done == ["block finished"]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL or callable(signal.getsignal(signal.SIGTERM))
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
