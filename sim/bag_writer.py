@@ -7,6 +7,12 @@ vision_msgs/Detection3DArray, ``reloc.rock_bag``). Header stamps and MCAP log
 times are the measurement time in integer nanoseconds. Messages are written in the order given,
 so a caller can also write a recording as it was received.
 
+Around the measurements, :mod:`sim.bag_scene` adds what a rover's recording holds: stereo images
+(:class:`reloc.camera_bag.StereoFrame` records in the stream) with their CameraInfo, ``/tf`` and
+``/tf_static``, the orbital catalog as latched markers (and its file named in the bag's
+``metadata.yaml`` custom data), with a configurable start epoch and command style
+(:class:`sim.bag_scene.BagStyle`).
+
 Compression: rosbags' ``CompressionMode.STORAGE`` on the MCAP plugin zstd-compresses every MCAP
 chunk (about 1 MiB uncompressed each), which is what ``ros2 bag record --storage mcap
 --storage-preset-profile zstd_fast`` produces; ``metadata.yaml`` then lists no file/message
@@ -26,7 +32,14 @@ from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
 from reloc.bag_spec import (
+    BASE_FRAME,
+    CAMERA_INFO_TYPE,
     CMD_VEL_TYPE,
+    CMD_VEL_UNSTAMPED_TYPE,
+    COMPRESSED_IMAGE_TYPE,
+    IMAGE_TYPE,
+    MARKERS_TYPE,
+    TF_TYPE,
     IMU_TYPE,
     ODOMETRY_TYPE,
     ROCK_CLASS_ID,
@@ -36,6 +49,7 @@ from reloc.bag_spec import (
     TopicNames,
     typestore,
 )
+from reloc.camera_bag import StereoFrame, camera_info_message, catalog_markers, image_message, tf_message
 from reloc.kinds import kinds_with
 from reloc.measurements import (
     CmdVel,
@@ -45,6 +59,7 @@ from reloc.measurements import (
     RockObservations,
     WheelOdometry,
 )
+from sim.bag_scene import BagScene, BagStyle, latched_qos
 from sim.errors import SimError
 
 log = logging.getLogger(__name__)
@@ -214,6 +229,64 @@ def _remove_bag_dir(path: Path) -> None:
     shutil.rmtree(path)
 
 
+class _Out:
+    """The writer's topics: connections made on first use, messages counted, stamps tracked."""
+
+    def __init__(self, writer, ts) -> None:
+        self.writer, self.ts = writer, ts
+        self.connections: dict = {}
+        self.counts: dict[str, int] = {}
+        self.ns_min = self.ns_max = None
+
+    def put(self, topic: str, msgtype: str, ns: int, data: bytes, latched: bool = False) -> None:
+        conn = self.connections.get(topic)
+        if conn is None:
+            conn = self.writer.add_connection(topic, msgtype, typestore=self.ts,
+                                              offered_qos_profiles=latched_qos() if latched else ())
+            self.connections[topic] = conn
+            self.counts[topic] = 0
+        self.writer.write(conn, ns, data)
+        self.counts[topic] += 1
+        self.ns_min = ns if self.ns_min is None else min(self.ns_min, ns)
+        self.ns_max = ns if self.ns_max is None else max(self.ns_max, ns)
+
+    def msg(self, topic: str, msgtype: str, ns: int, message, latched: bool = False) -> None:
+        self.put(topic, msgtype, ns, self.ts.serialize_cdr(message, msgtype), latched)
+
+
+def _scene_writers(out: _Out, enc: _Encoder, topics: TopicNames, style: BagStyle, scene: BagScene | None):
+    """(at_start(ns), frame(StereoFrame, ns), truth(GroundTruthPose, ns)) of the scene (see module doc)."""
+    scene = scene or BagScene()
+    img_type = IMAGE_TYPE if style.image_format == "raw" else COMPRESSED_IMAGE_TYPE
+    suffix = "" if style.image_format == "raw" else "/compressed"
+
+    def at_start(ns: int) -> None:
+        if style.tf and scene.static_transforms():
+            out.msg(topics.tf_static, TF_TYPE, ns, tf_message(enc, ns, scene.static_transforms()), latched=True)
+        if style.tf and scene.catalog_xy_m is not None:
+            out.msg(topics.catalog, MARKERS_TYPE, ns,
+                    catalog_markers(enc, ns, WORLD_FRAME, scene.catalog_xy_m, scene.catalog_size_m), latched=True)
+
+    def frame(m: StereoFrame, ns: int) -> None:
+        if scene.left is None or scene.right is None:
+            raise BagWriteError("stereo images need the cameras' calibration: pass scene=BagScene(left=..., right=...)")
+        for img, cal, image_topic, info_topic in ((m.left, scene.left, topics.left_image, topics.left_info),
+                                                  (m.right, scene.right, topics.right_image, topics.right_info)):
+            out.msg(image_topic + suffix, img_type, ns, image_message(enc, ns, cal.frame_id, img, style.image_format))
+            out.msg(info_topic, CAMERA_INFO_TYPE, ns, camera_info_message(enc, ns, cal))
+
+    def truth(m: GroundTruthPose, ns: int) -> None:
+        if style.tf:
+            T = np.eye(4)
+            from scipy.spatial.transform import Rotation
+
+            T[:3, :3] = Rotation.from_quat(m.quat_xyzw).as_matrix()
+            T[:3, 3] = m.position_m
+            out.msg(topics.tf, TF_TYPE, ns, tf_message(enc, ns, [(WORLD_FRAME, BASE_FRAME, T)]))
+
+    return at_start, frame, truth
+
+
 def write_bag(
     path: Path,
     measurements: Iterable[Measurement],
@@ -222,17 +295,23 @@ def write_bag(
     frame_id_base: str = "base_link",
     overwrite: bool = False,
     encoding: BagEncoding | None = None,
+    style: BagStyle | None = None,
+    scene: BagScene | None = None,
+    custom_data: dict[str, str] | None = None,
 ) -> BagSummary:
     """Write ``measurements`` (any order; written as given) to the rosbag2 directory ``path``.
 
-    Times are seconds (>= 0) and become integer-ns header stamps and log times. Rock positions
-    and covariances stay in ``frame_id_base``. Raises :class:`BagWriteError` when ``path`` exists
-    (unless ``overwrite``), on an unknown measurement type or a negative time; a partly written
-    bag is removed.
+    Times are seconds (>= 0) and become integer-ns header stamps and log times, offset by
+    ``style.epoch_ns``. Rock positions and covariances stay in ``frame_id_base``.
+    :class:`~reloc.camera_bag.StereoFrame` records become the stereo image and CameraInfo topics
+    of ``scene``; ``custom_data`` goes into ``metadata.yaml`` (e.g. the catalog file's name).
+    Raises :class:`BagWriteError` when ``path`` exists (unless ``overwrite``), on an unknown
+    measurement type or a negative time; a partly written bag is removed.
     """
     path = Path(path)
     topics = topics or TopicNames()
     encoding = encoding or BagEncoding()
+    style = style or BagStyle()
     if path.exists() or path.is_symlink():
         if not overwrite:
             raise BagWriteError(f"bag path {path} exists; pass overwrite=True to replace it")
@@ -241,8 +320,10 @@ def write_bag(
 
     enc = _Encoder(frame_id_base, encoding)
     fast = _fast_encoder(enc, encoding)
+    cmd_type = CMD_VEL_TYPE if style.cmd_vel_stamped else CMD_VEL_UNSTAMPED_TYPE
+    cmd_build = enc.cmd_vel if style.cmd_vel_stamped else (lambda m, ns: enc.twist(m.v_mps, m.yaw_rate_radps))
     routes = {
-        CmdVel: (topics.cmd_vel, CMD_VEL_TYPE, enc.cmd_vel),
+        CmdVel: (topics.cmd_vel, cmd_type, cmd_build),
         ImuSample: (topics.imu, IMU_TYPE, enc.imu),
         WheelOdometry: (topics.wheel_odom, ODOMETRY_TYPE, enc.wheel),
         GroundTruthPose: (topics.ground_truth, ODOMETRY_TYPE, enc.ground_truth),
@@ -255,46 +336,51 @@ def write_bag(
         )
     encode = {t: (lambda m, ns, b=b, mt=mt: enc.ts.serialize_cdr(b(m, ns), mt)) for t, (_, mt, b) in routes.items()}
     if fast is not None:  # byte-identical CDR written directly (checked against rosbags at start)
-        encode.update({CmdVel: fast.cmd_vel, ImuSample: fast.imu, WheelOdometry: fast.wheel,
+        encode.update({ImuSample: fast.imu, WheelOdometry: fast.wheel,
                        GroundTruthPose: fast.ground_truth, RockObservations: fast.rocks})
-    counts: dict[str, int] = {}
-    connections = {}
-    ns_min, ns_max = None, None
+        if style.cmd_vel_stamped:
+            encode[CmdVel] = fast.cmd_vel
     writer = Writer(path, version=ROSBAG2_VERSION, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    for key, value in (custom_data or {}).items():
+        writer.set_custom_data(key, str(value))
+    out = _Out(writer, enc.ts)
+    at_start, frame, truth = _scene_writers(out, enc, topics, style, scene)
     try:
         with writer:
+            started = False
             for m in measurements:
                 route = routes.get(type(m))
-                if route is None:
+                if route is None and not isinstance(m, StereoFrame):
                     raise BagWriteError(
                         f"cannot write {type(m).__name__} to bag {path}: unknown type (neither a motion input, "
-                        "ground truth nor the observation of a registered landmark kind with a bag layer)"
+                        "ground truth, a stereo frame nor the observation of a registered landmark kind with a "
+                        "bag layer)"
                     )
-                topic, msgtype, _ = route
                 ns = stamp_ns(m.t)
                 if ns < 0:
                     raise BagWriteError(
                         f"cannot write {type(m).__name__} at t={m.t} s to {path}: negative time"
                     )
-                conn = connections.get(topic)
-                if conn is None:
-                    conn = writer.add_connection(topic, msgtype, typestore=enc.ts)
-                    connections[topic] = conn
-                    counts[topic] = 0
-                writer.write(conn, ns, encode[type(m)](m, ns))
-                counts[topic] += 1
-                ns_min = ns if ns_min is None else min(ns_min, ns)
-                ns_max = ns if ns_max is None else max(ns_max, ns)
+                ns += style.epoch_ns
+                if not started:
+                    at_start(ns)
+                    started = True
+                if isinstance(m, StereoFrame):
+                    frame(m, ns)
+                    continue
+                out.put(route[0], route[1], ns, encode[type(m)](m, ns))
+                if isinstance(m, GroundTruthPose):
+                    truth(m, ns)
     except BaseException:
         shutil.rmtree(path, ignore_errors=True)
         raise
     n_bytes = sum(p.stat().st_size for p in path.iterdir() if p.is_file())
-    log.info("wrote bag %s: %s, %.1f kB", path, counts, n_bytes / 1e3)
+    log.info("wrote bag %s: %s, %.1f kB", path, out.counts, n_bytes / 1e3)
     return BagSummary(
         path=path,
-        counts=counts,
+        counts=out.counts,
         n_bytes=n_bytes,
-        t_start=float("nan") if ns_min is None else ns_min / 1e9,
-        t_end=float("nan") if ns_max is None else ns_max / 1e9,
+        t_start=float("nan") if out.ns_min is None else out.ns_min / 1e9,
+        t_end=float("nan") if out.ns_max is None else out.ns_max / 1e9,
     )

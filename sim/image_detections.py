@@ -66,44 +66,43 @@ def _box_rock(instance: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
+def stereo_front_end(stereo_cfg: StereoConfig, cfg: ImageDetectionConfig, detector=None):
+    """The rover front-end (:class:`reloc.stereo_frontend.StereoFrontEnd`) of the rendered mast
+    camera: its rig, its mounting and the stereo range gate of ``stereo_cfg``."""
+    from reloc.stereo import StereoRig
+    from reloc.stereo_frontend import FrontEndConfig, StereoFrontEnd
+
+    cam = rover_camera(stereo_cfg, cfg.width_px)
+    rig = StereoRig(cam.f_px, cam.cx_px, cam.cy_px, stereo_cfg.baseline_m)
+    fe_cfg = FrontEndConfig(min_range_m=stereo_cfg.min_range_m, max_range_m=stereo_cfg.max_range_m, method=cfg.method)
+    return StereoFrontEnd(rig, StereoCamera.from_config(stereo_cfg).T_base_cam, fe_cfg, detector=detector), cam
+
+
 def image_rock_observations(
     world: World, t_s: np.ndarray, T_world_base: np.ndarray, stereo_cfg: StereoConfig = StereoConfig(),
     detector=None, cfg: ImageDetectionConfig = ImageDetectionConfig(), progress: Callable[[], None] | None = None,
+    on_frame: Callable[[float, object], None] | None = None,
 ) -> ImageObservations:
     """Detections of the rendered stereo pairs at base poses ``T_world_base`` (F, 4, 4), times
-    ``t_s`` (F,) seconds; ``detector`` defaults to the shipped rover model."""
+    ``t_s`` (F,) seconds; ``detector`` defaults to the shipped rover model. ``on_frame(t, render)``
+    receives every rendered pair (:class:`sim.render.stereo.StereoRender`), e.g. to record it."""
     import time
 
-    from reloc.detector import RockDetector
-    from reloc.stereo import StereoRig, TriangulationConfig, rock_points
-
-    det = detector if detector is not None else RockDetector(kind="rover")
-    cam = rover_camera(stereo_cfg, cfg.width_px)
-    rig = StereoRig(cam.f_px, cam.cx_px, cam.cy_px, stereo_cfg.baseline_m)
-    tcfg = TriangulationConfig(method=cfg.method)
-    T_base_cam = StereoCamera.from_config(stereo_cfg).T_base_cam
-    R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+    front, cam = stereo_front_end(stereo_cfg, cfg, detector)
     renderer = Renderer(world, cfg.appearance)
     obs, rocks, visible = [], [], []
     n_true = n_det = n_vis = 0
     t_render = t_detect = t_stereo = 0.0
     for t, T_wb in zip(np.asarray(t_s, dtype=float), np.asarray(T_world_base, dtype=float)):
         t0 = time.perf_counter()
-        sr = renderer.stereo(T_wb @ T_base_cam, cam, stereo_cfg.baseline_m, cfg.lighting)
-        t1 = time.perf_counter()
-        dl = det.detect(sr.left)
-        dr = det.detect(sr.right) if cfg.method == "match" else None
-        t2 = time.perf_counter()
-        rp = rock_points(sr.left, sr.right, dl, rig, tcfg, dr)
-        t3 = time.perf_counter()
-        t_render, t_detect, t_stereo = t_render + t1 - t0, t_detect + t2 - t1, t_stereo + t3 - t2
-        rng_m = np.linalg.norm(rp.xyz_cam_m, axis=1)
-        keep = (rng_m >= stereo_cfg.min_range_m) & (rng_m <= stereo_cfg.max_range_m)
-        xyz_b = rp.xyz_cam_m[keep] @ R_bc.T + t_bc
-        cov_b = np.einsum("ij,njk,lk->nil", R_bc, rp.cov_cam_m2[keep], R_bc)
-        obs.append(RockObservations(float(t), xyz_b, 0.5 * (cov_b + np.swapaxes(cov_b, 1, 2)),
-                                    np.maximum(rp.size_m[keep], 1e-3), rp.score[keep]))
-        truth = _box_rock(sr.instance_left, dl.boxes_xyxy[rp.index[keep]])
+        sr = renderer.stereo(T_wb @ front.T_base_cam, cam, stereo_cfg.baseline_m, cfg.lighting)
+        t_render += time.perf_counter() - t0
+        if on_frame is not None:
+            on_frame(float(t), sr)
+        fr = front.frame(float(t), sr.left, sr.right)
+        t_detect, t_stereo = t_detect + fr.detect_s, t_stereo + fr.stereo_s
+        obs.append(fr.observations)
+        truth = _box_rock(sr.instance_left, fr.boxes_left)
         lab = box_labels(sr.instance_left, cfg.min_label_area_px, 5.0)
         in_range = np.linalg.norm(world.rocks.xyz_m[lab.rock] - sr.T_world_left[:3, 3], axis=1) <= stereo_cfg.max_range_m
         vis = lab.rock[~lab.ignore & in_range]
@@ -139,7 +138,8 @@ def image_catalog(world: World, gsd_m: float = 0.05, detector=None, lighting: Li
 
 
 def with_image_detections(run, cfg: ImageDetectionConfig = ImageDetectionConfig(), rover_detector=None,
-                          nadir_detector=None, progress: Callable[[], None] | None = None):
+                          nadir_detector=None, progress: Callable[[], None] | None = None,
+                          on_frame: Callable[[float, object], None] | None = None):
     """A copy of the simulator run ``run`` (:class:`sim.simulate.SimRun`) whose /rocks frames and
     catalog come from rendering and the detectors; every other stream is left untouched. With
     ``cfg.rate_hz`` below the run's stereo rate, frames are thinned to that rate."""
@@ -155,7 +155,8 @@ def with_image_detections(run, cfg: ImageDetectionConfig = ImageDetectionConfig(
         t_frames = t_frames[keep[keep < len(t_frames)]]
     gt = run.ground_truth
     idx = np.clip(np.searchsorted(gt.t, t_frames - 1e-9), 0, len(gt.t) - 1)
-    img = image_rock_observations(run.world, t_frames, gt.T_world_base[idx], stereo_cfg, rover_detector, cfg, progress)
+    img = image_rock_observations(run.world, t_frames, gt.T_world_base[idx], stereo_cfg, rover_detector, cfg, progress,
+                                  on_frame)
     catalog, catalog_rock = image_catalog(run.world, cfg.orbital_gsd_m, nadir_detector, cfg.lighting, cfg.appearance)
     meas = [m for m in run.measurements if not isinstance(m, RockObservations)] + img.observations
     meas.sort(key=sort_key)

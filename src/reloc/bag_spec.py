@@ -56,23 +56,41 @@ CMD_VEL_UNSTAMPED_TYPE = "geometry_msgs/msg/Twist"  # read only: stamped by the 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 ROCKS_TYPE = "vision_msgs/msg/Detection3DArray"
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+MARKERS_TYPE = "visualization_msgs/msg/MarkerArray"
 
 ROCK_CLASS_ID = "rock"
 WORLD_FRAME = "world"
+ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
+LEFT_CAMERA_FRAME = "stereo_left_optical"  # the rectified left camera (z forward, x right, y down)
+RIGHT_CAMERA_FRAME = "stereo_right_optical"
 
 
 @dataclass(frozen=True)
 class TopicNames:
-    """Topic names of a bag. Required on read: ``imu``, one of ``cmd_vel`` / ``wheel_odom``, and
-    the topic of at least one landmark kind (``rocks``); ``ground_truth`` is optional. ``kinds``
-    maps another kind's name to its topic (default: its codec's ``default_topic``)."""
+    """Topic names of a bag, one per input role. Required on read: ``imu``, one of ``cmd_vel`` /
+    ``wheel_odom``, and the topic of at least one landmark kind (``rocks``), or the stereo image
+    topics for the image front-end (``left_image``, ``right_image``, ``left_info``,
+    ``right_info``, mounting from ``tf_static``); ``ground_truth`` is optional. ``kinds`` maps
+    another kind's name to its topic (default: its codec's ``default_topic``). ``tf`` and
+    ``catalog`` are written for viewers (the rover's frames, the orbital catalog as markers)."""
 
     cmd_vel: str = "/cmd_vel"
     imu: str = "/imu"
     wheel_odom: str = "/wheel_odom"
     rocks: str = "/rocks"
     ground_truth: str = "/ground_truth"
+    left_image: str = "/stereo/left/image_raw"
+    right_image: str = "/stereo/right/image_raw"
+    left_info: str = "/stereo/left/camera_info"
+    right_info: str = "/stereo/right/camera_info"
+    tf: str = "/tf"
+    tf_static: str = "/tf_static"
+    catalog: str = "/catalog"
     kinds: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -85,13 +103,64 @@ class TopicNames:
                 raise ConfigError(f"TopicNames.{where} must be a non-empty string, got {name!r}")
         names = [n for _, n in named]
         if len(set(names)) != len(names):
-            raise ConfigError(f"TopicNames must be distinct, got {names}")
+            twice = sorted({n for n in names if names.count(n) > 1})
+            raise ConfigError(f"TopicNames must be distinct: {twice} named for several roles")
 
     def topic_of(self, kind: str, codec: BagCodec) -> str:
         """The topic of landmark kind ``kind`` (encoded by ``codec``)."""
         if kind == "rocks":
             return self.rocks
         return self.kinds.get(kind, codec.default_topic)
+
+    def as_roles(self) -> dict[str, str]:
+        """Role -> topic, every role (landmark kinds other than rocks by their kind name)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "kinds"}
+        out.update(self.kinds)
+        return out
+
+
+def topic_roles(kind_names: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The roles a topic map may name: the fixed ones, then the landmark kinds ``kind_names``."""
+    fixed = tuple(f.name for f in fields(TopicNames) if f.name != "kinds")
+    return fixed + tuple(k for k in kind_names if k not in fixed)
+
+
+def topic_names(mapping: Mapping[str, str] | None, kind_names: tuple[str, ...] = (),
+                base: TopicNames | None = None) -> TopicNames:
+    """:class:`TopicNames` from a role -> topic map (``--topic ROLE=NAME``, a ``topics:`` block) over
+    ``base`` (default: the defaults). A role is a field of TopicNames or a landmark kind's name in
+    ``kind_names``; an unknown role raises :class:`ConfigError` listing the valid ones."""
+    base = base or TopicNames()
+    if not mapping:
+        return base
+    if not isinstance(mapping, Mapping):
+        raise ConfigError(f"topics must map roles to topic names, got {type(mapping).__name__}")
+    roles = topic_roles(kind_names)
+    unknown = [r for r in mapping if r not in roles]
+    if unknown:
+        raise ConfigError(f"topics: unknown role(s) {unknown}; roles are {', '.join(roles)}")
+    for role, name in mapping.items():
+        if not isinstance(name, str) or not name.startswith("/"):
+            raise ConfigError(f"topics.{role}: a topic name starting with '/', got {name!r}")
+    fixed = {r: n for r, n in mapping.items() if r in {f.name for f in fields(TopicNames)}}
+    kinds = {**base.kinds, **{r: n for r, n in mapping.items() if r not in fixed}}
+    if "rocks" in kinds:  # the rock kind's topic is the field
+        fixed["rocks"] = kinds.pop("rocks")
+    return TopicNames(**{**{f.name: getattr(base, f.name) for f in fields(TopicNames) if f.name != "kinds"},
+                         **fixed, "kinds": kinds})
+
+
+def parse_topic_options(options: list[str] | tuple[str, ...]) -> dict[str, str]:
+    """``["imu=/imu/data", ...]`` (repeated ``--topic ROLE=NAME``) -> {role: topic}."""
+    out: dict[str, str] = {}
+    for text in options or ():
+        role, sep, name = str(text).partition("=")
+        if not sep or not role.strip() or not name.strip():
+            raise ConfigError(f"--topic must be ROLE=NAME (e.g. imu=/imu/data), got {text!r}")
+        if role.strip() in out:
+            raise ConfigError(f"--topic gives role {role.strip()!r} twice")
+        out[role.strip()] = name.strip()
+    return out
 
 
 @dataclass(frozen=True)
