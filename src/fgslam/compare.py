@@ -49,9 +49,13 @@ class CompareConfig:
     backend_overrides: dict = field(default_factory=dict)  # name -> config overrides
     rpe_delta_m: Positive = 10.0
     workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
+    topics: dict = field(default_factory=dict)  # input role -> bag topic (reloc.bag_spec.topic_names)
 
     def __post_init__(self) -> None:
         from fgslam.backends.registry import BACKEND_NAMES, backend_config
+        from fgslam.inputs import bag_topics
+
+        bag_topics(self.topics)  # an unknown role or a bad name is refused here, naming the roles
 
         unknown = [b for b in (*self.backends, self.reference_backend) if b not in BACKEND_NAMES]
         if unknown:

@@ -179,10 +179,10 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
     return None
 
 
-def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
+def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None) -> RunInputs:
     """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
     rocks_true.csv, and the catalog file of every other landmark kind present (its catalog layer);
-    refused when its manifest says it was not completely written."""
+    refused when its manifest says it was not completely written. ``topics``: as :func:`load_bag`."""
     import yaml
 
     from fgslam.io.outdir import require_complete
@@ -196,7 +196,8 @@ def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
             raise InputFileError(f"{path}: missing {needed} (expected the output of `fgslam sim`)")
     others = {k.name: path / k.layer("catalog").file_name for k in kinds_with("catalog") if k.name != "rocks"}
     others = {name: p for name, p in others.items() if p.exists()}
-    inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name, kind_catalogs=others)
+    inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name, kind_catalogs=others,
+                      topics=topics)
     world_yaml: dict = {}
     if (path / "world.yaml").exists():
         try:
@@ -219,13 +220,24 @@ def load_sim_dir(path: Path, start: StartSpec | None = None) -> RunInputs:
     return inputs
 
 
+def bag_topics(mapping: dict[str, str] | None = None):
+    """:class:`reloc.bag_spec.TopicNames` of a role -> topic map (``--topic ROLE=NAME``, a
+    ``topics:`` block) over the defaults; roles are TopicNames' fields and the landmark kinds with
+    a bag layer. A bad map raises :class:`reloc.errors.ConfigError` listing the roles."""
+    from reloc.bag_spec import topic_names
+
+    return topic_names(mapping, tuple(k.name for k in kinds_with("bag")))
+
+
 def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name: str | None = None,
-             kind_catalogs: dict[str, Path] | None = None, stream: bool | None = None) -> RunInputs:
+             kind_catalogs: dict[str, Path] | None = None, stream: bool | None = None,
+             topics=None) -> RunInputs:
     """Read any ROS 2 bag with the fgslam topics plus an orbital rock catalog CSV (x,y,size,score)
     and, in ``kind_catalogs``, the catalog files of other landmark kinds (kind name -> path); the
     start pose is the first ground truth unless ``start`` gives one. ``stream``: iterate the bag
     from disk at every pass (True), read it into memory once (False), or decide by its size (None:
-    stream above :data:`STREAM_ABOVE_MESSAGES` messages)."""
+    stream above :data:`STREAM_ABOVE_MESSAGES` messages). ``topics``: the bag's
+    :class:`reloc.bag_spec.TopicNames` (default: fgslam's own names)."""
     from fgslam.io.bag_reader import BagSource
     from fgslam.io.catalog_csv import MIN_CATALOG_ROCKS, read_catalog_csv
 
@@ -234,7 +246,8 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
         raise InputFileError(f"{bag}: bag not found")
     if not catalog_csv.exists():
         raise InputFileError(f"{catalog_csv}: catalog not found")
-    source = BagSource(bag)
+    topics = topics or bag_topics()
+    source = BagSource(bag, topics)
     if stream is None:
         stream = sum(source.message_counts.values()) > STREAM_ABOVE_MESSAGES
     measurements = source if stream else list(source)
@@ -257,7 +270,8 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
         name=name or bag.stem, measurements=measurements, catalogs=catalogs, initial=initial,
         source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv), "streamed": bool(stream),
                 **({"kind_catalogs": {k: str(p) for k, p in kind_catalogs.items()}} if kind_catalogs else {}),
-                "report": str(source.report or "")},
+                "report": str(source.report or ""),
+                "topics": {"cmd_vel": topics.cmd_vel, "wheel_odom": topics.wheel_odom, "imu": topics.imu}},
     )
 
 
@@ -308,7 +322,8 @@ def check_stream(inputs: RunInputs, runner):
     where = inputs.source.get("bag") or inputs.name
     stamps = _motion_stamps(inputs.measurements)
     n = {"cmd": len(stamps[CmdVel]), "wheel": len(stamps[WheelOdometry])}
-    topic = {"cmd": "/cmd_vel", "wheel": "/wheel_odom"}
+    names = inputs.source.get("topics") or {}
+    topic = {"cmd": names.get("cmd_vel", "/cmd_vel"), "wheel": names.get("wheel_odom", "/wheel_odom")}
     want = runner.speed_source
     other = "wheel" if want == "cmd" else "cmd"
     if n[want] == 0:

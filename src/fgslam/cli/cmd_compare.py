@@ -61,11 +61,12 @@ def compare_cmd(
     from rich.console import Console
 
     from fgslam.cli.cmd_run import load_config
-    from fgslam.inputs import load_sim_dir
+    from fgslam.inputs import bag_topics, load_sim_dir
     from fgslam.io.outdir import OutputDir
 
     console = Console(stderr=True)
     cfg = with_backends(load_config(config), backends)
     with OutputDir(out, "compare") as od:  # checked, created and locked before any work
-        inputs_list = [load_sim_dir(d) for d in directories]  # all inputs checked before any long work
+        topics = bag_topics(cfg.topics)
+        inputs_list = [load_sim_dir(d, topics=topics) for d in directories]  # all inputs checked before any long work
         compare_and_write(inputs_list, od, cfg, console, rrd=not no_rrd)

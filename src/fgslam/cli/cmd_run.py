@@ -45,19 +45,30 @@ def parse_start(start: str | None, sigma: str | None):
     return StartSpec(**spec)
 
 
-def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, spec=None):
+def topic_map(config_topics: dict | None, options: list[str] | None) -> dict[str, str]:
+    """The role -> topic map of a run: the config's ``topics:`` block, then ``--topic ROLE=NAME``
+    options over it; checked (unknown roles, bad names) by :func:`fgslam.inputs.bag_topics`."""
+    from fgslam.inputs import bag_topics
+    from reloc.bag_spec import parse_topic_options
+
+    merged = {**(config_topics or {}), **parse_topic_options(options or [])}
+    bag_topics(merged)
+    return merged
+
+
+def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, spec=None, topics=None):
     """The run inputs from DIR (``fgslam sim`` output) or from --bag/--catalog; ``spec``: the
-    :class:`fgslam.inputs.StartSpec` of --start/--start-sigma."""
+    :class:`fgslam.inputs.StartSpec` of --start/--start-sigma; ``topics``: the bag's TopicNames."""
     from fgslam.errors import InputFileError
     from fgslam.inputs import load_bag, load_sim_dir
 
     if directory is not None:
         if bag is not None or catalog is not None:
             raise InputFileError("give either DIR or --bag/--catalog, not both")
-        return load_sim_dir(directory, spec)
+        return load_sim_dir(directory, spec, topics)
     if bag is None or catalog is None:
         raise InputFileError("give a `fgslam sim` output DIR, or both --bag PATH and --catalog CSV")
-    return load_bag(bag, catalog, spec)
+    return load_bag(bag, catalog, spec, topics=topics)
 
 
 def load_config(path: Path | None):
@@ -78,7 +89,8 @@ def run_cmd(
     catalog: Path | None = typer.Option(None, "--catalog", help="Orbital catalog CSV x,y,size,score (with --bag)."),
     start: str | None = typer.Option(None, "--start", help="Start pose X,Y,YAW or X,Y,Z,YAW (m, rad) instead of the first ground truth; roll and pitch come from the IMU."),
     start_sigma: str | None = typer.Option(None, "--start-sigma", help="Start pose 1-sigma XY,YAW or XY,Z,YAW (m, rad) [default: 0.01 m, 0.002 rad]."),
-    config: Path | None = typer.Option(None, "--config", help="YAML overrides (runner, relocalizer, backend_overrides)."),
+    config: Path | None = typer.Option(None, "--config", help="YAML overrides (runner, relocalizer, backend_overrides, topics)."),
+    topic: list[str] = typer.Option([], "--topic", help="Map an input role to a bag topic, ROLE=NAME (repeatable), e.g. --topic imu=/imu/data --topic wheel_odom=/odom."),
 ) -> None:
     """Run one back-end on a traverse; write trajectory.tum, metrics.json, fixes.csv, config.yaml."""
     from rich.console import Console
@@ -87,7 +99,7 @@ def run_cmd(
     from fgslam.cli.progress import stream_progress
     from fgslam.compare import relocalizer_set, run_key, run_metrics
     from fgslam.fix_sources import NoFixes, OnlineFixes
-    from fgslam.inputs import check_stream, truth_of
+    from fgslam.inputs import bag_topics, check_stream, truth_of
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
     from fgslam.runner import run_backend
@@ -95,12 +107,13 @@ def run_cmd(
 
     console = Console(stderr=True)
     cfg = load_config(config)
+    topics = topic_map(cfg.topics, topic)
     spec = parse_start(start, start_sigma)
     with OutputDir(out, "run") as od:  # checked, created and locked before any work
         rrd_staged = od.inside(rrd) if rrd is not None else None
         if rrd is not None and rrd_staged is None:
             check_output_path(rrd, "--rrd", directory=False)
-        inputs = load_inputs(directory, bag, catalog, spec)
+        inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics))
         runner_cfg = check_stream(inputs, cfg.runner)
         gt = truth_of(inputs)
         be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))
@@ -115,6 +128,7 @@ def run_cmd(
             "runner": config_to_dict(runner_cfg), "relocalizer": config_to_dict(cfg.relocalizer),
             "backend_config": backend_config_dict(be),
             "kind_relocalizers": {"+".join(r.kinds): config_to_dict(r.config) for r in relocs if r.kinds != ("rocks",)},
+            "topics": topics,
         }
         write_run_outputs(od.staging, res, gt, met, used)
         if rrd is not None:  # in --out: part of the directory; elsewhere: its own atomic file

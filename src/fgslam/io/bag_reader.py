@@ -132,7 +132,8 @@ def _check_topics(reader, roles: list[_Role], path: Path) -> dict[str, object]:
     if missing:
         raise BagError(
             f"bag {path}: required topic(s) missing or empty: {', '.join(missing)}; "
-            f"topics present: {listing}"
+            f"topics present: {listing}; map a role to a topic of the bag with --topic ROLE=NAME "
+            f"or a topics: block in --config (roles: {', '.join(r.name for r in roles)})"
         )
     selected = {}
     for r in roles:
