@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from reloc.bag_spec import BASE_FRAME, LEFT_CAMERA_FRAME, ODOM_FRAME, RIGHT_CAMERA_FRAME, WORLD_FRAME
+from reloc.bag_spec import BASE_FRAME, LEFT_CAMERA_FRAME, ODOM_FRAME, RIGHT_CAMERA_FRAME, WORLD_FRAME, TopicNames
 from reloc.camera_bag import CameraCalibration
 from sim.errors import SimError
 
@@ -43,10 +43,40 @@ class BagStyle:
             raise SimError(f"BagStyle.image_format must be raw, png or jpeg, got {self.image_format!r}")
 
 
-def parse_epoch(text: str | None) -> int:
+ROBOT_EPOCH_NS = 1_767_225_600 * 1_000_000_000  # 2026-01-01T00:00:00Z: a real-looking first stamp
+
+# The topics and types of a rover as its drivers publish them (Husky / Clearpath style): an
+# unstamped Twist command, /imu/data, wheel odometry on /odom, compressed stereo images.
+ROBOT_TOPICS = TopicNames(cmd_vel="/cmd_vel", imu="/imu/data", wheel_odom="/odom", ground_truth="/ground_truth",
+                          left_image="/stereo/left/image_raw", right_image="/stereo/right/image_raw",
+                          left_info="/stereo/left/camera_info", right_info="/stereo/right/camera_info",
+                          catalog="/orbital/catalog")
+
+
+def bag_style(name: str, epoch_ns: int | None = None) -> tuple[BagStyle, TopicNames]:
+    """The (style, topics) of a named bag style: ``fgslam`` (fgslam's own topics, stamps from 0,
+    /tf and the catalog markers) or ``robot`` (:data:`ROBOT_TOPICS`, an unstamped Twist, PNG
+    compressed images, stamps from 2026-01-01); ``epoch_ns`` replaces the style's start epoch."""
+    if name == "fgslam":
+        style = BagStyle(tf=True)
+        topics = TopicNames()
+    elif name == "robot":
+        style = BagStyle(epoch_ns=ROBOT_EPOCH_NS, cmd_vel_stamped=False, image_format="png", tf=True)
+        topics = ROBOT_TOPICS
+    else:
+        raise SimError(f"--bag-style must be fgslam or robot, got {name!r}")
+    if epoch_ns is not None:
+        style = BagStyle(epoch_ns=epoch_ns, cmd_vel_stamped=style.cmd_vel_stamped,
+                         image_format=style.image_format, tf=style.tf)
+    return style, topics
+
+
+def parse_epoch(text: str | None) -> int | None:
     """``--epoch``: seconds since 1970 (``1767225600``) or an ISO date/time in UTC
-    (``2026-01-01``, ``2026-01-01T08:30:00Z``) -> integer ns (None/"0" -> 0)."""
-    if text is None or str(text).strip() in ("", "0"):
+    (``2026-01-01``, ``2026-01-01T08:30:00Z``) -> integer ns (None -> None: the style's own)."""
+    if text is None:
+        return None
+    if str(text).strip() in ("", "0"):
         return 0
     text = str(text).strip()
     try:

@@ -186,6 +186,12 @@ class _Encoder:
         )
 
 
+def message_builder(frame_id_base: str = "base_link", encoding: BagEncoding | None = None) -> _Encoder:
+    """The writer's message builder (:class:`reloc.bag_spec.MessageBuilder`, with ``ts`` its
+    typestore), for a caller that writes a landmark kind's messages into a bag of its own."""
+    return _Encoder(frame_id_base, encoding or BagEncoding())
+
+
 def _fast_encoder(enc: _Encoder, encoding: BagEncoding):
     """The precompiled encoders of :mod:`sim.bag_fast` when they reproduce rosbags' bytes on
     sample messages of every type (else None: the rosbags path is used)."""

@@ -20,6 +20,7 @@ from fgslam import metrics as M
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
 from fgslam.inputs import RunInputs, truth_of
+from fgslam.io.image_rocks import ImageInputConfig
 from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
@@ -50,6 +51,7 @@ class CompareConfig:
     rpe_delta_m: Positive = 10.0
     workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
     topics: dict = field(default_factory=dict)  # input role -> bag topic (reloc.bag_spec.topic_names)
+    images: ImageInputConfig = field(default_factory=ImageInputConfig)  # a bag's stereo images -> rocks
 
     def __post_init__(self) -> None:
         from fgslam.backends.registry import BACKEND_NAMES, backend_config

@@ -179,7 +179,8 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
     return None
 
 
-def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None) -> RunInputs:
+def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None, images=None,
+                 image_progress=None) -> RunInputs:
     """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
     rocks_true.csv, and the catalog file of every other landmark kind present (its catalog layer);
     refused when its manifest says it was not completely written. ``topics``: as :func:`load_bag`."""
@@ -197,7 +198,7 @@ def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None) -> Run
     others = {k.name: path / k.layer("catalog").file_name for k in kinds_with("catalog") if k.name != "rocks"}
     others = {name: p for name, p in others.items() if p.exists()}
     inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name, kind_catalogs=others,
-                      topics=topics)
+                      topics=topics, images=images, image_progress=image_progress)
     world_yaml: dict = {}
     if (path / "world.yaml").exists():
         try:
@@ -229,15 +230,28 @@ def bag_topics(mapping: dict[str, str] | None = None):
     return topic_names(mapping, tuple(k.name for k in kinds_with("bag")))
 
 
+def _has_topic(bag: Path, topic: str) -> bool:
+    from fgslam.io.bag_reader import _open, _resolve
+
+    reader = _open(_resolve(Path(bag)), Path(bag))
+    try:
+        return topic in reader.topics and reader.topics[topic].msgcount > 0
+    finally:
+        reader.close()
+
+
 def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name: str | None = None,
              kind_catalogs: dict[str, Path] | None = None, stream: bool | None = None,
-             topics=None) -> RunInputs:
+             topics=None, images=None, image_progress=None) -> RunInputs:
     """Read any ROS 2 bag with the fgslam topics plus an orbital rock catalog CSV (x,y,size,score)
     and, in ``kind_catalogs``, the catalog files of other landmark kinds (kind name -> path); the
     start pose is the first ground truth unless ``start`` gives one. ``stream``: iterate the bag
     from disk at every pass (True), read it into memory once (False), or decide by its size (None:
     stream above :data:`STREAM_ABOVE_MESSAGES` messages). ``topics``: the bag's
-    :class:`reloc.bag_spec.TopicNames` (default: fgslam's own names)."""
+    :class:`reloc.bag_spec.TopicNames` (default: fgslam's own names). A bag without the rock
+    topic but with stereo images has its rocks detected on the fly
+    (:class:`fgslam.io.image_rocks.ImageRockSource`, settings ``images``, an
+    :class:`~fgslam.io.image_rocks.ImageInputConfig`; ``image_progress(done, total)`` per pair)."""
     from fgslam.io.bag_reader import BagSource
     from fgslam.io.catalog_csv import MIN_CATALOG_ROCKS, read_catalog_csv
 
@@ -246,8 +260,16 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
         raise InputFileError(f"{bag}: bag not found")
     if not catalog_csv.exists():
         raise InputFileError(f"{catalog_csv}: catalog not found")
+    from fgslam.io.image_rocks import ImageRockSource, has_images
+
     topics = topics or bag_topics()
-    source = BagSource(bag, topics)
+    on_the_fly = not _has_topic(bag, topics.rocks) and has_images(bag, topics)
+    if on_the_fly:
+        log.info("%s: no %s topic; rocks are detected in its stereo images", bag, topics.rocks)
+        source = ImageRockSource(bag, topics, images)
+        source.detect(image_progress)
+    else:
+        source = BagSource(bag, topics)
     if stream is None:
         stream = sum(source.message_counts.values()) > STREAM_ABOVE_MESSAGES
     measurements = source if stream else list(source)
@@ -270,7 +292,7 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
         name=name or bag.stem, measurements=measurements, catalogs=catalogs, initial=initial,
         source={"kind": "bag", "bag": str(bag), "catalog": str(catalog_csv), "streamed": bool(stream),
                 **({"kind_catalogs": {k: str(p) for k, p in kind_catalogs.items()}} if kind_catalogs else {}),
-                "report": str(source.report or ""),
+                "report": str(source.report or ""), "rocks_from_images": on_the_fly,
                 "topics": {"cmd_vel": topics.cmd_vel, "wheel_odom": topics.wheel_odom, "imu": topics.imu}},
     )
 

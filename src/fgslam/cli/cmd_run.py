@@ -56,19 +56,39 @@ def topic_map(config_topics: dict | None, options: list[str] | None) -> dict[str
     return merged
 
 
-def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, spec=None, topics=None):
+def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, spec=None, topics=None,
+                images=None, console=None):
     """The run inputs from DIR (``fgslam sim`` output) or from --bag/--catalog; ``spec``: the
-    :class:`fgslam.inputs.StartSpec` of --start/--start-sigma; ``topics``: the bag's TopicNames."""
+    :class:`fgslam.inputs.StartSpec` of --start/--start-sigma; ``topics``: the bag's TopicNames;
+    ``images``: the ImageInputConfig of a bag whose rocks come from its images (progress bar on
+    ``console``)."""
+    from contextlib import ExitStack
+
     from fgslam.errors import InputFileError
     from fgslam.inputs import load_bag, load_sim_dir
 
-    if directory is not None:
-        if bag is not None or catalog is not None:
-            raise InputFileError("give either DIR or --bag/--catalog, not both")
-        return load_sim_dir(directory, spec, topics)
-    if bag is None or catalog is None:
+    if directory is not None and (bag is not None or catalog is not None):
+        raise InputFileError("give either DIR or --bag/--catalog, not both")
+    if directory is None and (bag is None or catalog is None):
         raise InputFileError("give a `fgslam sim` output DIR, or both --bag PATH and --catalog CSV")
-    return load_bag(bag, catalog, spec, topics=topics)
+    with ExitStack() as stack:
+        progress = None
+        if console is not None:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            bar = stack.enter_context(Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
+                                               TimeElapsedColumn(), console=console, transient=True))
+            task = None
+
+            def progress(done: int, total: int) -> None:
+                nonlocal task
+                if task is None:
+                    task = bar.add_task("detecting rocks (images)", total=total)
+                bar.update(task, completed=done)
+
+        if directory is not None:
+            return load_sim_dir(directory, spec, topics, images, progress)
+        return load_bag(bag, catalog, spec, topics=topics, images=images, image_progress=progress)
 
 
 def load_config(path: Path | None):
@@ -113,7 +133,7 @@ def run_cmd(
         rrd_staged = od.inside(rrd) if rrd is not None else None
         if rrd is not None and rrd_staged is None:
             check_output_path(rrd, "--rrd", directory=False)
-        inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics))
+        inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics), cfg.images, console)
         runner_cfg = check_stream(inputs, cfg.runner)
         gt = truth_of(inputs)
         be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))

@@ -49,6 +49,15 @@ def sim_cmd(
     image_rate_hz: float | None = typer.Option(
         None, "--image-rate-hz", help="Stereo frame rate of the image path (default: the stereo rate)."
     ),
+    write_images: bool = typer.Option(
+        False, "--write-images", help="With --detections image: write the rendered stereo pairs, their CameraInfo and the camera mounting (/tf_static) into the bag."
+    ),
+    bag_style: str = typer.Option(
+        "fgslam", "--bag-style", help="fgslam (fgslam's topics, stamps from 0) | robot (/imu/data, /odom, an unstamped Twist on /cmd_vel, /stereo/*/image_raw/compressed, stamps from 2026-01-01; with --write-images no /rocks: the images are the rocks' input). Both write /tf, /tf_static and the catalog as markers."
+    ),
+    epoch: str | None = typer.Option(
+        None, "--epoch", help="First stamp: seconds since 1970 or an ISO date (2026-01-01T08:00:00Z) [default: the style's]."
+    ),
 ) -> None:
     """Simulate a rover traverse and write a ROS 2 bag, the orbital catalog and the world files."""
     import time
@@ -60,14 +69,22 @@ def sim_cmd(
     from sim.simulate import simulate
     from sim.tiled.presets import is_tiled
 
+    from sim.bag_scene import bag_style as named_style
+    from sim.bag_scene import parse_epoch
+
     if detections not in ("statistical", "image"):
         raise typer.BadParameter(f"--detections must be 'statistical' or 'image', got {detections!r}")
+    if write_images and detections != "image":
+        raise typer.BadParameter("--write-images needs --detections image (the images are rendered there)")
+    style, topics = named_style(bag_style, parse_epoch(epoch))
     console = Console(stderr=True)
     t0 = time.perf_counter()
     cfg = load_sim_config(world, seed, distance_m, config)
     if is_tiled(cfg.world):
         if detections != "statistical":
             raise typer.BadParameter("--detections image is for the yards; the kilometre worlds use the sensor models")
+        if bag_style != "fgslam" or epoch is not None:
+            raise typer.BadParameter("--bag-style and --epoch are for the yards; the kilometre worlds stream fgslam's bag")
         _sim_tiled(cfg, out, overwrite, console)
         return
     with sim_output_dir(out, overwrite) as od, \
@@ -75,13 +92,20 @@ def sim_cmd(
                      console=console, transient=True) as progress:
         task = progress.add_task(f"simulating {cfg.world} (seed {cfg.seed})", total=2)
         run = simulate(cfg)
+        frames: list = []
+        image_cfg = None
         if detections == "image":
+            from reloc.camera_bag import StereoFrame
             from sim.image_detections import ImageDetectionConfig, with_image_detections
 
             progress.update(task, description="rendering stereo/orbital images and detecting rocks")
-            run = with_image_detections(run, ImageDetectionConfig(rate_hz=image_rate_hz))
+            image_cfg = ImageDetectionConfig(rate_hz=image_rate_hz)
+            keep = (lambda t, sr: frames.append(StereoFrame(t, sr.left, sr.right))) if write_images else None
+            run = with_image_detections(run, image_cfg, on_frame=keep)
         progress.update(task, advance=1, description="writing bag, catalog, world and orbital image")
-        summary = write_sim_files(run, od.staging)
+        summary = write_sim_files(run, od.staging, style, topics, frames or None,
+                                  image_cfg.width_px if image_cfg else 640,
+                                  rock_topic=not (write_images and bag_style == "robot"))
         od.commit()
         progress.update(task, advance=1)
     wall = time.perf_counter() - t0

@@ -115,7 +115,7 @@ def _open(bag: Path, path: Path):
     return reader
 
 
-def _check_topics(reader, roles: list[_Role], path: Path) -> dict[str, object]:
+def _check_topics(reader, roles: list[_Role], path: Path, require_landmarks: bool = True) -> dict[str, object]:
     """Validate topic presence and types; return topic -> connections to read."""
     info = reader.topics
     present = {r.name: r.topic in info and info[r.topic].msgcount > 0 for r in roles}
@@ -125,7 +125,7 @@ def _check_topics(reader, roles: list[_Role], path: Path) -> dict[str, object]:
     by_name = {r.name: r for r in roles}
     missing = [by_name["imu"].topic] if not present["imu"] else []
     landmarks = [r for r in roles if r.landmark]
-    if not any(present[r.name] for r in landmarks):  # at least one landmark kind
+    if require_landmarks and not any(present[r.name] for r in landmarks):  # at least one landmark kind
         missing.append(" or ".join(r.topic for r in landmarks) or "a landmark topic (no kind selected)")
     if not (present["cmd_vel"] or present["wheel_odom"]):
         missing.append(f"{by_name['cmd_vel'].topic} or {by_name['wheel_odom'].topic}")
@@ -198,14 +198,17 @@ class BagSource:
     :func:`reloc.measurements.sort_key` order, holding only ``reorder_window_s`` of stream in
     memory: the repairs of the module doc are applied as the messages pass. A message stamped
     more than the window before the newest stamp recorded before it cannot be put in order any
-    more; it is dropped and counted as late (``repair=False``: raised). The topics and their types are checked
+    more; it is dropped and counted as late (``repair=False``: raised). ``require_landmarks`` False
+    accepts a bag without any landmark topic (its landmarks come from elsewhere, e.g. its images:
+    :class:`fgslam.io.image_rocks.ImageRockSource`). The topics and their types are checked
     when the source is made; ``report`` is set after the first complete iteration (whose repairs
     are logged once), and a required topic none of whose messages was usable raises at its end.
     """
 
     def __init__(self, path: str | Path, topics: TopicNames | None = None, *,
                  camera_frames: dict[str, np.ndarray] | None = None, repair: bool = True,
-                 config: BagReaderConfig | None = None, kinds: Sequence[str] | None = None) -> None:
+                 config: BagReaderConfig | None = None, kinds: Sequence[str] | None = None,
+                 require_landmarks: bool = True) -> None:
         self.path = Path(path)
         self.config = config or BagReaderConfig()
         self.repair = repair
@@ -214,7 +217,7 @@ class BagSource:
         self._bag = _resolve(self.path)
         reader = _open(self._bag, self.path)
         try:
-            self._topics = list(_check_topics(reader, self._roles, self.path))
+            self._topics = list(_check_topics(reader, self._roles, self.path, require_landmarks))
             self.message_counts = {t: int(reader.topics[t].msgcount) for t in self._topics}
             self._span_ns = (int(reader.start_time), int(reader.end_time))
         finally:

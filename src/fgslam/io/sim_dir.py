@@ -21,15 +21,32 @@ def sim_output_dir(out: Path, overwrite: bool = False) -> OutputDir:
     return OutputDir(out, "sim", replace=overwrite, replace_hint="pass --overwrite to replace them")
 
 
-def write_sim_files(run, directory: Path):
+def write_sim_files(run, directory: Path, style=None, topics=None, frames=None, image_width_px: int = 640,
+                    rock_topic: bool = True):
     """Write the files of ``run`` (:class:`sim.SimRun`) into the (staging) ``directory``; returns
-    the bag summary (messages, bytes)."""
+    the bag summary (messages, bytes). ``style``/``topics``: the bag's
+    :class:`sim.bag_scene.BagStyle` and names (default: fgslam's, no /tf); ``frames``: the rendered
+    stereo pairs (:class:`reloc.camera_bag.StereoFrame`, of a camera ``image_width_px`` wide) to
+    write as images with their CameraInfo and mounting; ``rock_topic`` False leaves the rock
+    detections out (the images are then the rocks' only input, as on a rover)."""
     from fgslam.io.catalog_csv import write_catalog_csv
+    from reloc.measurements import RockObservations, sort_key
+    from sim.bag_scene import BagScene, stereo_scene
     from sim.bag_writer import write_bag
     from sim.outputs import write_outputs
 
     directory = Path(directory)
-    summary = write_bag(directory / "bag", run.measurements)
+    measurements = [m for m in run.measurements if rock_topic or not isinstance(m, RockObservations)]
+    T0 = run.ground_truth.T_world_base[0]
+    if frames:
+        scene = stereo_scene(run.config.sensors.stereo, image_width_px, T0, run.catalog)
+        order = {id(f): i for i, f in enumerate(frames)}
+        measurements = sorted(measurements + list(frames),
+                              key=lambda m: (m.t, 99, order[id(m)]) if id(m) in order else (*sort_key(m), 0))
+    else:
+        scene = BagScene(T_world_odom=T0, catalog_xy_m=run.catalog.xy_m[:, :2], catalog_size_m=run.catalog.size_m)
+    summary = write_bag(directory / "bag", measurements, topics=topics, style=style, scene=scene,
+                        custom_data={"fgslam.catalog": "catalog.csv"})
     write_outputs(run, directory, catalog=False)
     write_catalog_csv(directory / "catalog.csv", run.catalog)
     return summary
