@@ -1,4 +1,7 @@
-"""Files of a single run: ``trajectory.tum``, ``metrics.json``, ``fixes.csv``, ``config.yaml``."""
+"""Files of a single run: ``<variant>.tum`` (``ekf.tum``, ``isam2_reloc.tum``, ...), beside it
+``ground_truth.tum`` when the run has truth (so that ``evo_ape tum ground_truth.tum ekf.tum``
+labels each curve by its variant), ``metrics.json``, ``fixes.csv``, ``config.yaml``; and the same
+TUM files per world of a comparison (``<world>/``)."""
 
 from __future__ import annotations
 
@@ -40,29 +43,46 @@ def write_fixes_csv(path: Path, run: RunResult, gt: Trajectory | None) -> Path:
     return path
 
 
-def write_run_outputs(out: Path, run: RunResult, gt: Trajectory | None, metrics: dict, config: dict) -> list[Path]:
-    """Write the four files of ``fgslam run`` into ``out``; returns their paths."""
-    import yaml
+GROUND_TRUTH_TUM = "ground_truth.tum"
 
+
+def write_tums(out: Path, runs: dict[str, RunResult], gt: Trajectory | None) -> list[Path]:
+    """``<key>.tum`` of every run's final trajectory (keys as :func:`fgslam.compare.run_key`) and
+    ``ground_truth.tum`` (with truth) into ``out``; returns their paths."""
     from fgslam.io.tum import write_tum
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    tum = out / "trajectory.tum"
-    write_tum(tum, run.final.t, run.final.T_world_base)
+    paths = []
+    for key, run in runs.items():
+        paths.append(out / f"{key}.tum")
+        write_tum(paths[-1], run.final.t, run.final.T_world_base)
+    if gt is not None:
+        paths.append(out / GROUND_TRUTH_TUM)
+        write_tum(paths[-1], gt.t, gt.T_world_base)
+    return paths
+
+
+def write_run_outputs(out: Path, run: RunResult, gt: Trajectory | None, metrics: dict, config: dict,
+                      key: str = "trajectory") -> list[Path]:
+    """Write the files of ``fgslam run`` into ``out`` (the trajectory as ``<key>.tum``); returns their paths."""
+    import yaml
+
+    out = Path(out)
+    tums = write_tums(out, {key: run}, gt)
     met = out / "metrics.json"
     met.write_text(json.dumps(_jsonable(metrics), indent=2))
     fixes = write_fixes_csv(out / "fixes.csv", run, gt)
     cfg = out / "config.yaml"
     cfg.write_text(yaml.safe_dump(_jsonable(config), sort_keys=False))
-    return [tum, met, fixes, cfg]
+    return [*tums, met, fixes, cfg]
 
 
 def write_comparison(out: Path, comparisons: list, config, rrd: bool = True) -> list[Path]:
     """table.md, results.json, PNG plots per world, compare.rrd and config.yaml of a comparison."""
     import yaml
 
-    from fgslam.compare import resolved_compare_config, resolved_dead_reckoning_config
+    from fgslam.compare import DR_KEY, resolved_compare_config, resolved_dead_reckoning_config
     from fgslam.report import write_results
     from fgslam.viz.plots import write_plots
 
@@ -72,6 +92,7 @@ def write_comparison(out: Path, comparisons: list, config, rrd: bool = True) -> 
     files = list(write_results(out, [wc.metrics for wc in comparisons], {"config": used}))
     for wc in comparisons:
         files += write_plots(out, wc)
+        files += write_tums(out / wc.inputs.name, {**wc.runs, DR_KEY: wc.dr}, wc.gt)
     if rrd:
         from fgslam.viz.rerun_log import write_comparison_rrd
 

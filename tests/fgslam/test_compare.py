@@ -111,7 +111,7 @@ def test_cli_sim_run_compare_end_to_end(tmp_path):
     out = tmp_path / "run"
     r = _cli("run", str(sim_dir), "--backend", "isam2", "--out", str(out), "--rrd", str(out / "run.rrd"))
     assert r.returncode == 0, r.stderr[-3000:]
-    traj = file_interface.read_tum_trajectory_file(str(out / "trajectory.tum"))
+    traj = file_interface.read_tum_trajectory_file(str(out / "isam2_reloc.tum"))
     met = json.loads((out / "metrics.json").read_text())
     assert traj.num_poses == met["ate"]["n"]
     assert met["ate"]["rmse"] < 0.5

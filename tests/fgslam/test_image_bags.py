@@ -74,13 +74,13 @@ def test_a_rover_style_bag_runs_by_detect_and_on_the_fly_alike(dirs, tmp_path, c
     base = ["run", "--backend", "ekf", "--catalog", str(root / "robot" / "catalog.csv"), *ROBOT_ARGS]
     assert main([*base, "--bag", str(tmp_path / "det"), "--out", str(tmp_path / "r_det")]) == 0
     assert main([*base, "--bag", str(bag), "--out", str(tmp_path / "r_fly")]) == 0
-    a, b = ((tmp_path / d / "trajectory.tum").read_text() for d in ("r_det", "r_fly"))
+    a, b = ((tmp_path / d / "ekf_reloc.tum").read_text() for d in ("r_det", "r_fly"))
     assert a == b
     met = json.loads((tmp_path / "r_fly" / "metrics.json").read_text())
     assert met["ate"]["rmse"] < 0.5
     # the simulator's directory runs too: the same images, the same rocks
     assert main(["run", str(root / "robot"), "--backend", "ekf", *ROBOT_ARGS, "--out", str(tmp_path / "r_dir")]) == 0
-    assert (tmp_path / "r_dir" / "trajectory.tum").read_text() == a
+    assert (tmp_path / "r_dir" / "ekf_reloc.tum").read_text() == a
 
 
 def test_detect_resumes_from_its_saved_frames(dirs, tmp_path, capsys):

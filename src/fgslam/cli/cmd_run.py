@@ -112,7 +112,8 @@ def run_cmd(
     config: Path | None = typer.Option(None, "--config", help="YAML overrides (runner, relocalizer, backend_overrides, topics)."),
     topic: list[str] = typer.Option([], "--topic", help="Map an input role to a bag topic, ROLE=NAME (repeatable), e.g. --topic imu=/imu/data --topic wheel_odom=/odom."),
 ) -> None:
-    """Run one back-end on a traverse; write trajectory.tum, metrics.json, fixes.csv, config.yaml."""
+    """Run one back-end on a traverse; write <variant>.tum (e.g. isam2_reloc.tum), ground_truth.tum
+    (with truth), metrics.json, fixes.csv, config.yaml."""
     from rich.console import Console
 
     from fgslam.backends.registry import backend_config_dict, make_backend
@@ -150,7 +151,7 @@ def run_cmd(
             "kind_relocalizers": {"+".join(r.kinds): config_to_dict(r.config) for r in relocs if r.kinds != ("rocks",)},
             "topics": topics,
         }
-        write_run_outputs(od.staging, res, gt, met, used)
+        write_run_outputs(od.staging, res, gt, met, used, key)
         if rrd is not None:  # in --out: part of the directory; elsewhere: its own atomic file
             from fgslam.viz.rerun_log import write_rrd
 

@@ -45,7 +45,7 @@ COMPLETE, WRITING, INCOMPLETE = "complete", "writing", "incomplete"
 # what each kind of output holds: how the files of a directory written before manifests existed
 # are told from files fgslam did not write
 KNOWN_NAMES: dict[str, tuple[str, ...]] = {
-    "run": ("trajectory.tum", "metrics.json", "fixes.csv", "config.yaml", "*.rrd"),
+    "run": ("*.tum", "metrics.json", "fixes.csv", "config.yaml", "*.rrd"),
     "compare": ("table.md", "results.json", "config.yaml", "compare.rrd", "*_xy.png", "*_errors.png",
                 "*_fix_errors.png"),
     "sim": ("bag", "catalog.csv", "rocks_true.csv", "world.yaml", "orbital.png"),
