@@ -10,6 +10,7 @@ odometry-only curve.
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -28,6 +29,18 @@ from reloc.backend import Trajectory
 from reloc.config import Positive, PositiveInt, checked
 
 log = logging.getLogger(__name__)
+
+
+class _CallableModule(type(sys.modules[__name__])):
+    """``fgslam.compare(...)`` is the facade's :func:`fgslam.api.compare` (see ``fgslam``'s doc)."""
+
+    def __call__(self, *args, **kwargs):
+        from fgslam.api import compare
+
+        return compare(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 DR_KEY = "dead_reckoning"  # the odometry-only pass, always run (not a compared variant)
 LABELS = {"ekf": "EKF", "isam2": "iSAM2", "dr": "Dead reckoning"}

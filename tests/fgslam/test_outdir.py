@@ -113,13 +113,18 @@ def test_foreign_files_other_kinds_and_unreplaceable_outputs_are_refused(tmp_pat
     with pytest.raises(OutputDirError, match="pass --overwrite"), \
             OutputDir(tmp_path / "s", "sim", replace=False, replace_hint="pass --overwrite to replace them"):
         pass
-    legacy = tmp_path / "legacy"  # a result written before manifests: its files by name
+    legacy = tmp_path / "legacy"  # a result written before manifests, or by hand: not ours to replace
     legacy.mkdir()
     (legacy / "table.md").write_text("old")
-    with OutputDir(legacy, "compare") as od:
+    with pytest.raises(OutputDirError, match=r"no fgslam manifest \(table.md\); .* --force"), \
+            OutputDir(legacy, "compare"):
+        pass
+    with OutputDir(legacy, "compare", force=True) as od:  # --force: its files of this kind are replaced
         _write(od, {"results.json": "{}"})
     assert not (legacy / "table.md").exists()
-    assert (home / "thesis.tex").read_text() == "years of work"
+    with OutputDir(home, "run", force=True) as od:  # --force beside foreign files: they are kept
+        _write(od, {"metrics.json": "{}"})
+    assert (home / "thesis.tex").read_text() == "years of work" and (home / "metrics.json").exists()
 
 
 def test_unusable_paths_are_refused_before_anything_is_written(tmp_path):

@@ -18,6 +18,7 @@ def campaign_cmd(
     workers: int = typer.Option(2, "--workers", help="Worker processes of the local cluster (one thread each)."),
     set_: list[str] = typer.Option([], "--set", help="Override for every task, dotted: traverse.distance_m=50, relocalizer.period_s=5 (repeatable)."),
     vary: list[str] = typer.Option([], "--vary", help="Sweep as variants: relocalizer.period_s=2,3,5 (repeatable; combinations of all sweeps)."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
 ) -> None:
     """Simulate each (world, seed), compare EKF and iSAM2 with and without relocalization on Dask,
     append results to OUT/results.jsonl (rerun to resume) and summarise across seeds."""
@@ -51,7 +52,7 @@ def campaign_cmd(
                   f"variant(s) = {n_tasks} tasks on {where}")
     counts = {"ok": 0, "error": 0}
     t0 = time.perf_counter()
-    with OutputDir(out, "campaign", staged=False) as od:  # checked and locked before the cluster starts
+    with OutputDir(out, "campaign", staged=False, force=force) as od:  # checked and locked before the cluster starts
         od.write_manifest(INCOMPLETE, tasks=n_tasks)
         with Progress(TextColumn("{task.description:<34}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                       console=console) as progress:

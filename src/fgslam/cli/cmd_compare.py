@@ -56,6 +56,7 @@ def compare_cmd(
     config: Path | None = typer.Option(None, "--config", help="YAML overrides of the comparison config."),
     backends: str | None = typer.Option(None, "--backends", help="Comma-separated back-ends (default ekf,isam2)."),
     no_rrd: bool = typer.Option(False, "--no-rrd", help="Skip the rerun recording."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
 ) -> None:
     """Compare EKF and iSAM2 (each with and without the same relocalization fixes) on each DIR."""
     from rich.console import Console
@@ -66,7 +67,7 @@ def compare_cmd(
 
     console = Console(stderr=True)
     cfg = with_backends(load_config(config), backends)
-    with OutputDir(out, "compare") as od:  # checked, created and locked before any work
+    with OutputDir(out, "compare", force=force) as od:  # checked, created and locked before any work
         topics = bag_topics(cfg.topics)
         inputs_list = [load_sim_dir(d, topics=topics) for d in directories]  # all inputs checked before any long work
         compare_and_write(inputs_list, od, cfg, console, rrd=not no_rrd)

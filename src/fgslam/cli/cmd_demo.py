@@ -17,6 +17,7 @@ def demo_cmd(
     out: Path = typer.Option(Path("runs/demo"), "--out", help="Output directory."),
     distance_m: float | None = typer.Option(None, "--distance-m", help="Traverse length in metres (default: the preset's)."),
     config: Path | None = typer.Option(None, "--config", help="YAML overrides of the comparison config."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
 ) -> None:
     """Simulate WORLD, run EKF and iSAM2 with and without relocalization, print the table, write plots and compare.rrd."""
     from rich.console import Console
@@ -36,7 +37,7 @@ def demo_cmd(
         import dataclasses
 
         sim_cfg = dataclasses.replace(sim_cfg, traverse=dataclasses.replace(sim_cfg.traverse, distance_m=distance_m))
-    with OutputDir(out, "compare") as od:  # checked, created and locked before any work
+    with OutputDir(out, "compare", force=force) as od:  # checked, created and locked before any work
         with console.status(f"simulating {world} (seed {seed})"):
             run = simulate(sim_cfg)
             inputs = from_sim_run(run, name=world)

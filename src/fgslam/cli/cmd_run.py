@@ -111,47 +111,31 @@ def run_cmd(
     start_sigma: str | None = typer.Option(None, "--start-sigma", help="Start pose 1-sigma XY,YAW or XY,Z,YAW (m, rad) [default: 0.01 m, 0.002 rad]."),
     config: Path | None = typer.Option(None, "--config", help="YAML overrides (runner, relocalizer, backend_overrides, topics)."),
     topic: list[str] = typer.Option([], "--topic", help="Map an input role to a bag topic, ROLE=NAME (repeatable), e.g. --topic imu=/imu/data --topic wheel_odom=/odom."),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
 ) -> None:
     """Run one back-end on a traverse; write <variant>.tum (e.g. isam2_reloc.tum), ground_truth.tum
     (with truth), metrics.json, fixes.csv, config.yaml."""
     from rich.console import Console
 
-    from fgslam.backends.registry import backend_config_dict, make_backend
+    from fgslam.api import run_one
     from fgslam.cli.progress import stream_progress
-    from fgslam.compare import relocalizer_set, run_key, run_metrics
-    from fgslam.fix_sources import NoFixes, OnlineFixes
-    from fgslam.inputs import bag_topics, check_stream, truth_of
+    from fgslam.inputs import bag_topics
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
-    from fgslam.runner import run_backend
-    from reloc.config import config_to_dict
 
     console = Console(stderr=True)
     cfg = load_config(config)
     topics = topic_map(cfg.topics, topic)
     spec = parse_start(start, start_sigma)
-    with OutputDir(out, "run") as od:  # checked, created and locked before any work
+    with OutputDir(out, "run", force=force) as od:  # checked, created and locked before any work
         rrd_staged = od.inside(rrd) if rrd is not None else None
         if rrd is not None and rrd_staged is None:
             check_output_path(rrd, "--rrd", directory=False)
         inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics), cfg.images, console)
-        runner_cfg = check_stream(inputs, cfg.runner)
-        gt = truth_of(inputs)
-        be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))
-        relocs = [] if no_reloc else relocalizer_set(inputs, cfg)
-        fixes = OnlineFixes(relocs) if relocs else NoFixes()
-        key = run_key(backend, not no_reloc)
         with stream_progress(inputs, console) as progress:
-            res = run_backend(be, inputs.measurements, fixes, config=runner_cfg, on_progress=progress.callback(key))
-        met = run_metrics(res, gt, res.attempts, cfg.rpe_delta_m)
-        used = {
-            "backend": backend, "relocalization": not no_reloc, "inputs": inputs.source,
-            "runner": config_to_dict(runner_cfg), "relocalizer": config_to_dict(cfg.relocalizer),
-            "backend_config": backend_config_dict(be),
-            "kind_relocalizers": {"+".join(r.kinds): config_to_dict(r.config) for r in relocs if r.kinds != ("rocks",)},
-            "topics": topics,
-        }
-        write_run_outputs(od.staging, res, gt, met, used, key)
+            outcome = run_one(inputs, backend, not no_reloc, cfg, topics, progress.callback)
+        key, res, gt, met = outcome.key, outcome.result, outcome.gt, outcome.metrics
+        write_run_outputs(od.staging, res, gt, met, outcome.used, key)
         if rrd is not None:  # in --out: part of the directory; elsewhere: its own atomic file
             from fgslam.viz.rerun_log import write_rrd
 

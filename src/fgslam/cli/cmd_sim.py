@@ -58,6 +58,7 @@ def sim_cmd(
     epoch: str | None = typer.Option(
         None, "--epoch", help="First stamp: seconds since 1970 or an ISO date (2026-01-01T08:00:00Z) [default: the style's]."
     ),
+    force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
 ) -> None:
     """Simulate a rover traverse and write a ROS 2 bag, the orbital catalog and the world files."""
     import time
@@ -85,9 +86,9 @@ def sim_cmd(
             raise typer.BadParameter("--detections image is for the yards; the kilometre worlds use the sensor models")
         if bag_style != "fgslam" or epoch is not None:
             raise typer.BadParameter("--bag-style and --epoch are for the yards; the kilometre worlds stream fgslam's bag")
-        _sim_tiled(cfg, out, overwrite, console)
+        _sim_tiled(cfg, out, overwrite, console, force)
         return
-    with sim_output_dir(out, overwrite) as od, \
+    with sim_output_dir(out, overwrite, force) as od, \
             Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                      console=console, transient=True) as progress:
         task = progress.add_task(f"simulating {cfg.world} (seed {cfg.seed})", total=2)
@@ -143,7 +144,7 @@ def _print_table(title: str, rows: list[tuple[str, str]]) -> None:
     Console().print(table)
 
 
-def _sim_tiled(cfg, out: Path, overwrite: bool, console) -> None:
+def _sim_tiled(cfg, out: Path, overwrite: bool, console, force: bool = False) -> None:
     """A kilometre-preset run: streamed into ``out``'s staging directory with a progress bar,
     committed whole (:mod:`fgslam.io.outdir`), then a summary table."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -151,7 +152,7 @@ def _sim_tiled(cfg, out: Path, overwrite: bool, console) -> None:
     from fgslam.io.sim_dir import sim_output_dir
     from sim.tiled.outputs import simulate_to_bag
 
-    with sim_output_dir(out, overwrite) as od, Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f}"),
+    with sim_output_dir(out, overwrite, force) as od, Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f}"),
                   TimeElapsedColumn(), console=console, transient=True) as progress:
         tasks: dict = {}
 

@@ -13,8 +13,9 @@ complete and untouched; a killed one also leaves its staging directory, which th
 removes. The commit itself first marks the manifest ``writing``, renames each file into place
 (atomic per file), removes the files of the previous result that the new one does not have
 (``--no-rrd`` leaves no old ``compare.rrd``), and only then writes the ``complete`` manifest.
-Files fgslam did not write are never removed: a directory holding such files and no manifest
-is refused, as is one holding another kind of output. The lock is an advisory ``flock`` on the
+Files fgslam did not write are never removed: a non-empty directory without a manifest (one
+fgslam did not create) is refused unless ``force`` (``--force``: then its files of this kind are
+replaced and the others kept), as is one holding another kind of output. The lock is an advisory ``flock`` on the
 directory itself: a second fgslam on the same OUT stops at once with an error instead of
 interleaving its files with the first one's.
 """
@@ -170,9 +171,10 @@ class OutputDir:
     place and only keeps the lock and the manifest."""
 
     def __init__(self, path: Path, kind: str, *, replace: bool = True, staged: bool = True,
-                 option: str = "--out", replace_hint: str = "") -> None:
+                 option: str = "--out", replace_hint: str = "", force: bool = False) -> None:
         self.path = Path(path).expanduser().absolute()
         self.kind, self.replace, self.staged, self.option = kind, replace, staged, option
+        self.force = force
         self.replace_hint = replace_hint
         self.staging: Path = self.path
         self._fd: int | None = None
@@ -225,12 +227,13 @@ class OutputDir:
         if self._previous is not None and self._previous["kind"] != self.kind:
             raise OutputDirError(f"{self.option} {self.path}: holds a `fgslam {self._previous['kind']}` output; "
                                  f"choose another directory for this `fgslam {self.kind}` output")
-        if self._previous is None:
+        if self._previous is None and names and not self.force:
             foreign = [n for n in names if not _known(self.kind, n)]
-            if foreign:
-                shown = ", ".join(foreign[:5]) + (", ..." if len(foreign) > 5 else "")
-                raise OutputDirError(f"{self.option} {self.path}: holds files fgslam did not write ({shown}); "
-                                     "choose an empty or a new directory")
+            shown = ", ".join((foreign or names)[:5]) + (", ..." if len(foreign or names) > 5 else "")
+            what = f"holds files fgslam did not write ({shown})" if foreign else \
+                f"is not empty and has no fgslam manifest ({shown})"
+            raise OutputDirError(f"{self.option} {self.path}: {what}; choose an empty or a new directory, "
+                                 "or pass --force to write into it (files of other kinds are kept)")
         ours = [n for n in names if _known(self.kind, n)]
         if ours and not self.replace:
             shown = ", ".join(ours[:5])

@@ -14,11 +14,11 @@ from pathlib import Path
 from fgslam.io.outdir import OutputDir
 
 
-def sim_output_dir(out: Path, overwrite: bool = False) -> OutputDir:
+def sim_output_dir(out: Path, overwrite: bool = False, force: bool = False) -> OutputDir:
     """The :class:`OutputDir` of a simulator run (enter it before simulating: the path is checked
     and locked at once); ``overwrite`` False refuses a directory that already holds a bag or a
-    catalog."""
-    return OutputDir(out, "sim", replace=overwrite, replace_hint="pass --overwrite to replace them")
+    catalog; ``force`` writes into a non-empty directory without a manifest."""
+    return OutputDir(out, "sim", replace=overwrite, replace_hint="pass --overwrite to replace them", force=force)
 
 
 def write_sim_files(run, directory: Path, style=None, topics=None, frames=None, image_width_px: int = 640,
