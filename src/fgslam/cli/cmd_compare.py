@@ -8,9 +8,10 @@ from pathlib import Path
 import typer
 
 from fgslam.cli.app import app
+from fgslam.cli.viewer import CONNECT_HELP, SERVE_HELP, SPAWN_HELP
 
 
-def compare_and_write(inputs_list: list, od, cfg, console, rrd: bool = True) -> list:
+def compare_and_write(inputs_list: list, od, cfg, console, rrd: bool = True, live: str | None = None) -> list:
     """Compare every input (progress bars), write all outputs into the open
     :class:`~fgslam.io.outdir.OutputDir` ``od`` and commit it, print the table; returns the comparisons."""
     from fgslam.cli.progress import stream_progress
@@ -28,6 +29,10 @@ def compare_and_write(inputs_list: list, od, cfg, console, rrd: bool = True) -> 
         with stream_progress(inputs, console) as progress:
             comparisons.append(compare_world(inputs, run_cfg, on_progress=progress.update))
     write_comparison(od.staging, comparisons, cfg, rrd=rrd)
+    if live is not None:  # the recording, streamed to the viewer too
+        from fgslam.viz.rerun_log import stream_rrd
+
+        stream_rrd(live, [(wc.inputs.name, wc.inputs, wc.gt, wc.runs, wc.attempts) for wc in comparisons])
     files = od.commit()
     print(markdown_table([wc.metrics for wc in comparisons]))
     for f in files:
@@ -55,19 +60,24 @@ def compare_cmd(
     out: Path = typer.Option(..., "--out", help="Output directory (table.md, results.json, PNGs, compare.rrd)."),
     config: Path | None = typer.Option(None, "--config", help="YAML overrides of the comparison config."),
     backends: str | None = typer.Option(None, "--backends", help="Comma-separated back-ends (default ekf,isam2)."),
-    no_rrd: bool = typer.Option(False, "--no-rrd", help="Skip the rerun recording."),
+    no_rrd: bool = typer.Option(False, "--no-rrd", help="Skip the rerun recording file."),
+    spawn: bool = typer.Option(False, "--spawn", help=SPAWN_HELP),
+    serve: int | None = typer.Option(None, "--serve", help=SERVE_HELP),
+    connect: str | None = typer.Option(None, "--connect", help=CONNECT_HELP),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
 ) -> None:
     """Compare EKF and iSAM2 (each with and without the same relocalization fixes) on each DIR."""
     from rich.console import Console
 
     from fgslam.cli.cmd_run import load_config
+    from fgslam.cli.viewer import live_url
     from fgslam.inputs import bag_topics, load_sim_dir
     from fgslam.io.outdir import OutputDir
 
     console = Console(stderr=True)
     cfg = with_backends(load_config(config), backends)
+    live = live_url(spawn, serve, connect, console)
     with OutputDir(out, "compare", force=force) as od:  # checked, created and locked before any work
         topics = bag_topics(cfg.topics)
         inputs_list = [load_sim_dir(d, topics=topics) for d in directories]  # all inputs checked before any long work
-        compare_and_write(inputs_list, od, cfg, console, rrd=not no_rrd)
+        compare_and_write(inputs_list, od, cfg, console, rrd=not no_rrd, live=live)

@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from fgslam.cli.app import app
+from fgslam.cli.viewer import CONNECT_HELP, SERVE_HELP, SPAWN_HELP
 
 
 def parse_floats(text: str, option: str, names: tuple[tuple[str, ...], ...]) -> tuple[float, ...]:
@@ -112,6 +113,9 @@ def run_cmd(
     config: Path | None = typer.Option(None, "--config", help="YAML overrides (runner, relocalizer, backend_overrides, topics)."),
     topic: list[str] = typer.Option([], "--topic", help="Map an input role to a bag topic, ROLE=NAME (repeatable), e.g. --topic imu=/imu/data --topic wheel_odom=/odom."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty OUT that fgslam did not create (its other files are kept)."),
+    spawn: bool = typer.Option(False, "--spawn", help=SPAWN_HELP),
+    serve: int | None = typer.Option(None, "--serve", help=SERVE_HELP),
+    connect: str | None = typer.Option(None, "--connect", help=CONNECT_HELP),
 ) -> None:
     """Run one back-end on a traverse; write <variant>.tum (e.g. isam2_reloc.tum), ground_truth.tum
     (with truth), metrics.json, fixes.csv, config.yaml."""
@@ -119,6 +123,7 @@ def run_cmd(
 
     from fgslam.api import run_one
     from fgslam.cli.progress import stream_progress
+    from fgslam.cli.viewer import live_url
     from fgslam.inputs import bag_topics
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
@@ -127,6 +132,7 @@ def run_cmd(
     cfg = load_config(config)
     topics = topic_map(cfg.topics, topic)
     spec = parse_start(start, start_sigma)
+    live = live_url(spawn, serve, connect, console)
     with OutputDir(out, "run", force=force) as od:  # checked, created and locked before any work
         rrd_staged = od.inside(rrd) if rrd is not None else None
         if rrd is not None and rrd_staged is None:
@@ -145,6 +151,10 @@ def run_cmd(
             else:
                 with atomic_path(rrd, "--rrd") as tmp:
                     write_rrd(tmp, items)
+        if live is not None:
+            from fgslam.viz.rerun_log import stream_rrd
+
+            stream_rrd(live, [(inputs.name, inputs, gt, {key: res}, res.attempts)])
         files = od.commit() + ([rrd] if rrd is not None and rrd_staged is None else [])
     if "ate" in met:
         console.print(f"{key}: ATE {met['ate']['rmse']:.3f} m, fixes {met['fixes']['fixes']} "

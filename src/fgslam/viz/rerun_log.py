@@ -6,16 +6,22 @@ orbital image can be a textured quad under the catalog, the truth and the estima
 
 - ``/W/map/orbital``, ``/W/map/catalog/KIND`` (each landmark kind's catalog), ``/W/map/truth``
   (static), ``/W/map/truth_pose`` (timeline);
-- ``/W/K/path`` (final trajectory, static), ``/W/K/pose`` and ``/W/K/pose_cov`` (online estimate and
-  its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks/KIND`` (each kind's final map, static),
+- ``/W/K/path`` (final trajectory, static), ``/W/K/pose``, ``/W/K/heading`` and ``/W/K/pose_cov``
+  (online estimate, an arrow along its heading, and its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks/KIND`` (each kind's final map, static),
   ``/W/K/fixes`` (fix events at t_recv, green accepted / red rejected);
 - ``/W/matches`` (matched local->catalog rock pairs at t_meas);
 - ``/W/errors/position/K`` and ``.../K_3sigma``, ``/W/errors/yaw/K`` and ``.../K_3sigma`` (scalars).
 
 Catalogs and maps are drawn by their kind's rerun layer (:mod:`reloc.kinds`; the default,
 :class:`fgslam.viz.landmarks.PointLandmarkLogger`, draws discs and 3-sigma ellipses). Time is
-stream seconds on the ``sim_time`` timeline. No server is started: recordings go to a file
-(``RecordingStream.save``).
+stream seconds on the ``sim_time`` timeline. The error curves are the *online* estimate's (what
+the rover knew at that time, the same series as the 3-sigma bound); the metrics' ATE is the final
+(smoothed) trajectory's, which for iSAM2 is much smaller: ``/W/errors/position/K_final`` draws
+that one too. Each bound is drawn in a lighter shade and thinner than its error.
+
+Recordings go to a file (:func:`write_rrd`) or live to a viewer (:func:`stream_rrd`): one this
+process starts on 127.0.0.1 (:func:`start_viewer`: a native viewer, or a gRPC server only that
+viewers connect to) or any gRPC URL (``rerun+http://HOST:PORT/proxy``).
 """
 
 from __future__ import annotations
@@ -38,6 +44,9 @@ ENT_TRUTH = "map/truth"
 ENT_TRUTH_POSE = "map/truth_pose"
 ENT_MATCHES = "matches"
 ENT_PATH, ENT_POSE, ENT_POSE_COV, ENT_LANDMARKS, ENT_FIXES = "path", "pose", "pose_cov", "landmarks", "fixes"
+ENT_HEADING = "heading"
+HEADING_ARROW_M = 0.6
+LOCALHOST = "127.0.0.1"
 ENT_ERR_POS, ENT_ERR_YAW = "errors/position", "errors/yaw"
 
 COLORS = {"truth": (44, 160, 44), "dr": (127, 127, 127), "ekf": (31, 119, 180), "isam2": (214, 39, 40),
@@ -134,6 +143,11 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
         idx = rr.TimeColumn(TIMELINE, duration=on.t)
         rr.send_columns(p(ENT_POSE), indexes=[idx], columns=rr.Points3D.columns(
             positions=flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
+        forward = on.T_world_base[:, :2, 0]  # base_link x axis in world: the heading
+        forward = HEADING_ARROW_M * forward / np.maximum(np.linalg.norm(forward, axis=1, keepdims=True), 1e-12)
+        rr.send_columns(p(ENT_HEADING), indexes=[idx], columns=rr.Arrows3D.columns(
+            origins=flat(on.positions_m[:, :2], Z_PATH), vectors=flat(forward, 0.0)), recording=rec)
+        rec.log(p(ENT_HEADING), rr.Arrows3D.from_fields(colors=col, radii=0.03), static=True)
         half, q = ellipses(on.cov[:, :2, :2])
         rr.send_columns(p(ENT_POSE_COV), indexes=[idx], columns=rr.Ellipsoids3D.columns(
             centers=flat(on.positions_m[:, :2], Z_PATH), half_sizes=half, quaternions=q), recording=rec)
@@ -147,24 +161,35 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
             positions=flat(xy, Z_FIX), colors=colors, radii=np.full(len(t), 0.2)), recording=rec)
 
 
+SERIES_WIDTH = {"error": 1.5, "3σ": 0.8, "final": 1.0}
+
+
+def _shade(rgb: tuple[int, int, int], style: str) -> tuple[int, int, int]:
+    """A run's colour for a series: the error as is, its 3-sigma bound halfway to white, the final
+    trajectory's error halfway to black."""
+    target = {"error": None, "3σ": 255, "final": 0}[style]
+    return rgb if target is None else tuple(int(round(0.5 * (c + target))) for c in rgb)
+
+
 def _log_errors(rec, world: str, key: str, run, gt) -> None:
     import rerun as rr
 
     _, s = M.consistency(run.online, gt)
-    idx = [rr.TimeColumn(TIMELINE, duration=s["t"])]
     err_pos = np.linalg.norm(s["err_xy"], axis=1)
     mask = np.isin(run.online.t, s["t"])
     sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(run.online.cov[mask][:, :2, :2])[:, -1])
-    for ent, vals in (
-        (f"{ENT_ERR_POS}/{key}", err_pos),
-        (f"{ENT_ERR_POS}/{key}_3sigma", sig_pos),
-        (f"{ENT_ERR_YAW}/{key}", np.degrees(np.abs(s["err_yaw"]))),
-        (f"{ENT_ERR_YAW}/{key}_3sigma", np.degrees(3.0 * s["sigma_yaw"])),
+    final_err, final_t = M.position_errors(run.final, gt)
+    for ent, vals, t, style in (
+        (f"{ENT_ERR_POS}/{key}", err_pos, s["t"], "error"),
+        (f"{ENT_ERR_POS}/{key}_3sigma", sig_pos, s["t"], "3σ"),
+        (f"{ENT_ERR_POS}/{key}_final", np.linalg.norm(final_err, axis=1), final_t, "final"),
+        (f"{ENT_ERR_YAW}/{key}", np.degrees(np.abs(s["err_yaw"])), s["t"], "error"),
+        (f"{ENT_ERR_YAW}/{key}_3sigma", np.degrees(3.0 * s["sigma_yaw"]), s["t"], "3σ"),
     ):
-        rr.send_columns(f"{world}/{ent}", indexes=idx, columns=rr.Scalars.columns(scalars=vals), recording=rec)
-        dashed = ent.endswith("3sigma")
-        rec.log(f"{world}/{ent}", rr.SeriesLines(colors=_color(key), widths=0.8 if dashed else 1.5,
-                                                 names=f"{key} {'3σ' if dashed else 'error'}"), static=True)
+        rr.send_columns(f"{world}/{ent}", indexes=[rr.TimeColumn(TIMELINE, duration=t)],
+                        columns=rr.Scalars.columns(scalars=vals), recording=rec)
+        rec.log(f"{world}/{ent}", rr.SeriesLines(colors=_shade(_color(key), style), widths=SERIES_WIDTH[style],
+                                                 names=f"{key} {style}"), static=True)
 
 
 def world_view(world: str, keys: list[str], center_xy: np.ndarray, span_m: float):
@@ -231,6 +256,56 @@ def write_rrd(path: Path, items: list[tuple[str, object, object, dict, list]], r
     rec.flush()
     rec.disconnect()
     return path
+
+
+def viewer_url(port: int, host: str = LOCALHOST) -> str:
+    """The gRPC URL an SDK or a viewer connects to."""
+    return f"rerun+http://{host}:{int(port)}/proxy"
+
+
+def start_viewer(port: int, serve_only: bool = False, timeout_s: float = 20.0):
+    """Start ``rerun`` bound to 127.0.0.1:``port`` (a native viewer; ``serve_only``: a gRPC
+    server only, which keeps what it receives for viewers that connect later with ``rerun
+    --connect URL``), detached from this process; wait until it listens. Returns the Popen."""
+    import shutil
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    from fgslam.errors import FgslamError
+
+    exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if exe is None:
+        raise FgslamError("the rerun viewer executable is not installed (pip install rerun-sdk)")
+    cmd = [exe, "--bind", LOCALHOST, "--port", str(int(port))] + (["--serve-grpc"] if serve_only else [])
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise FgslamError(f"rerun exited at once (status {proc.returncode}): is port {port} already in use?")
+        with socket.socket() as sock:
+            if sock.connect_ex((LOCALHOST, int(port))) == 0:
+                return proc
+        time.sleep(0.1)
+    proc.terminate()
+    raise FgslamError(f"rerun did not listen on {LOCALHOST}:{port} within {timeout_s:g} s")
+
+
+def stream_rrd(url: str, items: list[tuple[str, object, object, dict, list]], recording_id: str | None = None) -> str:
+    """Send the recording of ``items`` (as :func:`write_rrd`) with its blueprint to the viewer or
+    server at gRPC ``url``; returns ``url``."""
+    import rerun as rr
+
+    rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+    bp = blueprint([(w, _view_keys(runs), *_frame(inp, gt, runs)) for w, inp, gt, runs, _ in items])
+    rec.connect_grpc(url, default_blueprint=bp)
+    for world, inputs, gt, runs, attempts in items:
+        log_world(rec, world, inputs, gt, runs, attempts)
+    rec.flush()
+    rec.disconnect()
+    return url
 
 
 def write_comparison_rrd(path: Path, comparisons: list) -> Path:

@@ -1,0 +1,120 @@
+"""rerun (issue 16): the recording's error curves hold the run's own values (the final curve's
+median is metrics.json's ATE median; the 3-sigma bound is another series in another shade), poses
+carry a heading arrow, and a run streams live to a viewer (--connect) or to a gRPC server it
+starts bound to 127.0.0.1 (--serve)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _synth_stream import make_stream
+
+from fgslam.cli import main
+from fgslam.io.catalog_csv import write_catalog_csv
+from fgslam.io.outdir import OutputDir
+from fgslam.viz import rerun_log
+from sim.bag_writer import write_bag
+
+RERUN = str(Path(sys.executable).parent / "rerun")
+
+
+@pytest.fixture(scope="module")
+def synth_dir(tmp_path_factory):
+    s = make_stream(seed=2, duration_s=30.0)
+    d = tmp_path_factory.mktemp("live") / "synth"
+    with OutputDir(d, "sim") as od:
+        write_bag(od.staging / "bag", s.measurements)
+        write_catalog_csv(od.staging / "catalog.csv", s.catalog)
+        od.commit()
+    return d
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _series(path: Path) -> dict[str, np.ndarray]:
+    """Entity path -> the scalar values logged on it (time-varying rows only)."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, list] = {}
+    for c in RrdReader(path).stream():
+        if c.is_static:
+            continue
+        rb = c.to_record_batch()
+        for i, name in enumerate(rb.schema.names):
+            if name.endswith("Scalars:scalars"):
+                out.setdefault(c.entity_path, []).extend(v for row in rb.column(i).to_pylist() for v in row)
+    return {k: np.asarray(v, float) for k, v in out.items()}
+
+
+def _entities(path: Path) -> set[str]:
+    from rerun.chunk import RrdReader
+
+    return {c.entity_path for c in RrdReader(path).stream()}
+
+
+def test_the_recorded_errors_are_the_runs_values(synth_dir, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(synth_dir), "--backend", "ekf", "--out", str(out), "--rrd", str(out / "run.rrd")]) == 0
+    met = json.loads((out / "metrics.json").read_text())
+    series = _series(out / "run.rrd")
+    w = "/synth/errors/position/ekf_reloc"
+    assert np.median(series[f"{w}_final"]) == pytest.approx(met["ate"]["median"], rel=1e-6)
+    assert len(series[f"{w}_final"]) == met["ate"]["n"]
+    # the bound is its own series, larger than the error, drawn lighter and thinner
+    assert np.median(series[f"{w}_3sigma"]) > np.median(series[w])
+    assert rerun_log._shade((31, 119, 180), "3σ") != rerun_log._shade((31, 119, 180), "error")
+    assert rerun_log.SERIES_WIDTH["3σ"] < rerun_log.SERIES_WIDTH["error"]
+    assert "/synth/ekf_reloc/heading" in _entities(out / "run.rrd")
+
+
+def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
+    port, saved = _free_port(), tmp_path / "received.rrd"
+    viewer = subprocess.Popen([RERUN, "--bind", "127.0.0.1", "--port", str(port), "--save", str(saved)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        for _ in range(200):
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.1)
+        url = rerun_log.viewer_url(port)
+        assert main(["run", str(synth_dir), "--backend", "ekf", "--out", str(tmp_path / "o"), "--connect", url]) == 0
+        time.sleep(2.0)
+    finally:
+        viewer.send_signal(signal.SIGINT)
+        viewer.wait(timeout=30)
+    ents = _entities(saved)
+    assert {"/synth/ekf_reloc/path", "/synth/ekf_reloc/pose", "/synth/errors/position/ekf_reloc"} <= ents
+
+
+def test_serve_starts_a_server_on_localhost_only(synth_dir, tmp_path, capsys):
+    port = _free_port()
+    assert main(["run", str(synth_dir), "--backend", "dr", "--no-reloc", "--out", str(tmp_path / "o"),
+                 "--serve", str(port)]) == 0
+    err = capsys.readouterr().err
+    pid = int(err.split("(pid ")[1].split(")")[0])
+    try:
+        listening = set()
+        for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            if state == "0A":  # LISTEN
+                ip, p = local.split(":")
+                listening.add((ip, int(p, 16)))
+        assert ("0100007F", port) in listening and ("00000000", port) not in listening
+        assert f"rerun --connect {rerun_log.viewer_url(port)}" in " ".join(err.split())
+    finally:
+        os.kill(pid, signal.SIGTERM)
+    assert main(["run", str(synth_dir), "--out", str(tmp_path / "x"), "--spawn", "--serve", "1"]) == 2
