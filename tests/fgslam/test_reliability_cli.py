@@ -180,7 +180,9 @@ def test_sim_does_not_replace_an_existing_bag_by_default(tmp_path, synth_dir, ca
 
     monkeypatch.setattr(importlib.import_module("sim.simulate"), "simulate", no_sim)
     before = {p: p.read_bytes() for p in synth_dir.rglob("*") if p.is_file()}
-    assert main(["sim", "--world", "my2022", "--out", str(synth_dir)]) == 2
+    assert main(["sim", "--world", "my2022", "--out", str(synth_dir)]) == 2  # fgslam did not write it
+    assert "no fgslam manifest (bag, catalog.csv)" in capsys.readouterr().err
+    assert main(["sim", "--world", "my2022", "--out", str(synth_dir), "--force"]) == 2  # and it holds a bag
     assert "already holds bag, catalog.csv; pass --overwrite to replace them" in capsys.readouterr().err
     assert {p: p.read_bytes() for p in synth_dir.rglob("*") if p.is_file()} == before
 
