@@ -133,7 +133,8 @@ def _check_topics(reader, roles: list[_Role], path: Path, require_landmarks: boo
         raise BagError(
             f"bag {path}: required topic(s) missing or empty: {', '.join(missing)}; "
             f"topics present: {listing}; map a role to a topic of the bag with --topic ROLE=NAME "
-            f"or a topics: block in --config (roles: {', '.join(r.name for r in roles)})"
+            f"or a topics: block in --config (roles: {', '.join(r.name for r in roles)}; rocks can also come "
+            "from stereo images: left_image, right_image, left_info, right_info)"
         )
     selected = {}
     for r in roles:
