@@ -17,7 +17,14 @@ from typing import Literal
 
 import numpy as np
 
-from reloc.bag_spec import BASE_FRAME, LEFT_CAMERA_FRAME, ODOM_FRAME, RIGHT_CAMERA_FRAME, WORLD_FRAME, TopicNames
+from reloc.bag_spec import (
+    BASE_FRAME,
+    LEFT_CAMERA_FRAME,
+    ODOM_FRAME,
+    RIGHT_CAMERA_FRAME,
+    WORLD_FRAME,
+    TopicNames,
+)
 from reloc.camera_bag import CameraCalibration
 from sim.errors import SimError
 
@@ -135,13 +142,20 @@ def stereo_scene(stereo_cfg, width_px: int, T_world_odom=None, catalog=None) -> 
 def catalog_arrays(catalog) -> tuple[np.ndarray | None, np.ndarray | None]:
     if catalog is None or len(catalog) == 0:
         return None, None
-    xy = np.asarray(getattr(catalog, "xy_m"))
-    return xy[:, :2], np.asarray(getattr(catalog, "size_m"))
+    xy = np.asarray(catalog.xy_m)
+    return xy[:, :2], np.asarray(catalog.size_m)
 
 
 def latched_qos():
     """The transient-local, keep-last-1 QoS that /tf_static and latched markers are offered with."""
-    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
 
     never = QosTime(sec=0, nsec=0)
     return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, never, never,

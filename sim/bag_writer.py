@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
@@ -38,18 +39,24 @@ from reloc.bag_spec import (
     CMD_VEL_UNSTAMPED_TYPE,
     COMPRESSED_IMAGE_TYPE,
     IMAGE_TYPE,
-    MARKERS_TYPE,
-    TF_TYPE,
     IMU_TYPE,
+    MARKERS_TYPE,
     ODOMETRY_TYPE,
     ROCK_CLASS_ID,
     ROCKS_TYPE,
+    TF_TYPE,
     WORLD_FRAME,
     BagEncoding,
     TopicNames,
     typestore,
 )
-from reloc.camera_bag import StereoFrame, camera_info_message, catalog_markers, image_message, tf_message
+from reloc.camera_bag import (
+    StereoFrame,
+    camera_info_message,
+    catalog_markers,
+    image_message,
+    tf_message,
+)
 from reloc.kinds import kinds_with
 from reloc.measurements import (
     CmdVel,
@@ -284,8 +291,6 @@ def _scene_writers(out: _Out, enc: _Encoder, topics: TopicNames, style: BagStyle
     def truth(m: GroundTruthPose, ns: int) -> None:
         if style.tf:
             T = np.eye(4)
-            from scipy.spatial.transform import Rotation
-
             T[:3, :3] = Rotation.from_quat(m.quat_xyzw).as_matrix()
             T[:3, 3] = m.position_m
             out.msg(topics.tf, TF_TYPE, ns, tf_message(enc, ns, [(WORLD_FRAME, BASE_FRAME, T)]))

@@ -110,3 +110,17 @@ class NearestNeighbourMatcher:
             tr = md - R @ ms
         res = local_xy[pairs[:, 0]] @ R.T + tr - self.xy[pairs[:, 1]]
         return _Match(float(np.arctan2(R[1, 0], R[0, 0])), tr, 1.0, pairs, float(np.sqrt(np.mean(np.sum(res**2, 1)))))
+
+
+def write_input_dir(path, inputs: RunInputs):
+    """``inputs`` written as a complete `fgslam sim`-like directory (bag/, catalog.csv, manifest),
+    the input of `fgslam run DIR` and `fgslam compare`; returns ``path``."""
+    from fgslam.io.catalog_csv import write_catalog_csv
+    from fgslam.io.outdir import OutputDir
+    from sim.bag_writer import write_bag
+
+    with OutputDir(path, "sim") as od:
+        write_bag(od.staging / "bag", inputs.measurements)
+        write_catalog_csv(od.staging / "catalog.csv", inputs.catalog)
+        od.commit()
+    return path

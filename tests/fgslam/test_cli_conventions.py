@@ -9,24 +9,15 @@ import logging
 
 import pytest
 import yaml
-from _synth_stream import make_stream
+from _synth_stream import make_stream, write_input_dir
 
 import fgslam
 from fgslam.cli import main
-from fgslam.io.catalog_csv import write_catalog_csv
-from fgslam.io.outdir import OutputDir
-from sim.bag_writer import write_bag
 
 
 @pytest.fixture(scope="module")
 def synth_dir(tmp_path_factory):
-    s = make_stream(seed=11, duration_s=30.0)
-    d = tmp_path_factory.mktemp("conv") / "synth"
-    with OutputDir(d, "sim") as od:
-        write_bag(od.staging / "bag", s.measurements)
-        write_catalog_csv(od.staging / "catalog.csv", s.catalog)
-        od.commit()
-    return d
+    return write_input_dir(tmp_path_factory.mktemp("conv") / "synth", make_stream(seed=11, duration_s=30.0))
 
 
 def _ate(out) -> float:

@@ -12,12 +12,9 @@ from pathlib import Path
 
 import pytest
 import yaml
-from _synth_stream import make_stream
+from _synth_stream import make_stream, write_input_dir
 
 from fgslam.cli import main
-from fgslam.io.catalog_csv import write_catalog_csv
-from fgslam.io.outdir import OutputDir
-from sim.bag_writer import write_bag
 
 EVO_BIN = Path(sys.executable).parent
 
@@ -34,13 +31,7 @@ def _evo(tool: str, gt: Path, est: Path, tmp: Path, *args: str) -> dict:
 
 @pytest.fixture(scope="module")
 def synth_dir(tmp_path_factory):
-    s = make_stream(seed=5, duration_s=60.0)
-    d = tmp_path_factory.mktemp("evo") / "synth"
-    with OutputDir(d, "sim") as od:
-        write_bag(od.staging / "bag", s.measurements)
-        write_catalog_csv(od.staging / "catalog.csv", s.catalog)
-        od.commit()
-    return d
+    return write_input_dir(tmp_path_factory.mktemp("evo") / "synth", make_stream(seed=5, duration_s=60.0))
 
 
 def test_evo_ape_and_rpe_on_fgslams_files_equal_its_figures(synth_dir, tmp_path):

@@ -50,7 +50,7 @@ def _rocks(bag: Path, topic: str) -> list[RockObservations]:
 
 
 def test_detect_gives_the_simulators_detections_back(dirs, tmp_path):
-    root, run = dirs
+    root, _ = dirs
     out = tmp_path / "detected"
     assert main(["detect", str(root / "fgslam" / "bag"), "--out", str(out), "--topic", "rocks=/rocks_from_images"]) == 0
     own = read_bag(out).of_type(RockObservations)  # the simulator's /rocks, copied unchanged

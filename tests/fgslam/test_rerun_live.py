@@ -16,26 +16,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _synth_stream import make_stream
+from _synth_stream import make_stream, write_input_dir
 
 from fgslam.cli import main
-from fgslam.io.catalog_csv import write_catalog_csv
-from fgslam.io.outdir import OutputDir
 from fgslam.viz import rerun_log
-from sim.bag_writer import write_bag
 
 RERUN = str(Path(sys.executable).parent / "rerun")
 
 
 @pytest.fixture(scope="module")
 def synth_dir(tmp_path_factory):
-    s = make_stream(seed=2, duration_s=30.0)
-    d = tmp_path_factory.mktemp("live") / "synth"
-    with OutputDir(d, "sim") as od:
-        write_bag(od.staging / "bag", s.measurements)
-        write_catalog_csv(od.staging / "catalog.csv", s.catalog)
-        od.commit()
-    return d
+    return write_input_dir(tmp_path_factory.mktemp("live") / "synth", make_stream(seed=2, duration_s=30.0))
 
 
 def _free_port() -> int:

@@ -75,7 +75,13 @@ def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, 
     with ExitStack() as stack:
         progress = None
         if console is not None:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+            )
 
             bar = stack.enter_context(Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
                                                TimeElapsedColumn(), console=console, transient=True))

@@ -67,11 +67,10 @@ def sim_cmd(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from fgslam.io.sim_dir import sim_output_dir, write_sim_files
-    from sim.simulate import simulate
-    from sim.tiled.presets import is_tiled
-
     from sim.bag_scene import bag_style as named_style
     from sim.bag_scene import parse_epoch
+    from sim.simulate import simulate
+    from sim.tiled.presets import is_tiled
 
     if detections not in ("statistical", "image"):
         raise typer.BadParameter(f"--detections must be 'statistical' or 'image', got {detections!r}")
