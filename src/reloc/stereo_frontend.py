@@ -12,14 +12,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from reloc.config import NonNegative, Positive, checked
 from reloc.errors import ConfigError
 from reloc.measurements import RockObservations
-from reloc.stereo import RockPoints, StereoRig, TriangulationConfig, rock_points
+
+if TYPE_CHECKING:  # reloc.stereo imports OpenCV: only when a front-end is made
+    from reloc.stereo import RockPoints, StereoRig, TriangulationConfig
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,8 @@ class StereoFrontEnd:
             raise ConfigError(f"T_base_cam must be a finite (4, 4) transform, got shape {T.shape}")
         self.T_base_cam = T
         if self.triangulation is None:
+            from reloc.stereo import TriangulationConfig
+
             self.triangulation = TriangulationConfig(method=self.config.method)
         if self.detector is None:
             from reloc.detector import DetectorConfig, RockDetector
@@ -72,6 +76,8 @@ class StereoFrontEnd:
 
     def frame(self, t_s: float, left: np.ndarray, right: np.ndarray) -> FrontEndFrame:
         """Rocks of the rectified pair (``left``, ``right``: (H, W) uint8) stamped ``t_s``."""
+        from reloc.stereo import rock_points
+
         t0 = time.perf_counter()
         dl = self.detector.detect(left)
         dr = self.detector.detect(right) if self.triangulation.method == "match" else None
