@@ -17,14 +17,12 @@ def dump_text(what: str, config: Path | None = None) -> str:
     from fgslam.report import _jsonable
 
     if what == "run":
-        from fgslam.backends.registry import BACKEND_NAMES
+        from fgslam.backends.registry import BACKEND_NAMES, resolved_config
         from fgslam.cli.cmd_run import load_config
         from fgslam.compare import resolved_compare_config
 
         cfg = load_config(config)
         data = resolved_compare_config(cfg)
-        from fgslam.backends.registry import resolved_config
-
         data["backend_overrides"] = {name: resolved_config(name, cfg.backend_overrides.get(name))
                                      for name in BACKEND_NAMES}  # every back-end, not only the compared ones
     elif what == "sim":
