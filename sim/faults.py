@@ -157,13 +157,14 @@ def stuck_tick(speed_mps: np.ndarray, dt_s: float, stuck: Stuck) -> int:
     return int(k0 + moving[0]) if moving.size else -1
 
 
-def spin_commands(v_mps: np.ndarray, yaw_rate_radps: np.ndarray, k_stuck: int, n_ticks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Commands (K,) with ticks ``k_stuck .. k_stuck + n_ticks - 1`` holding the command of the
-    tick before (the wheels keep turning while the truth stands still)."""
+def spin_commands(v_mps: np.ndarray, yaw_rate_radps: np.ndarray, k_from: int, k_to: int) -> tuple[np.ndarray, np.ndarray]:
+    """Commands (K,) with ticks ``k_from .. k_to - 1`` (the truth standing still) holding the
+    command of the last moving tick before them: the wheels keep turning."""
     v, w = np.array(v_mps, float), np.array(yaw_rate_radps, float)
-    k_prev = max(k_stuck - 1, 0)
-    v[k_stuck:k_stuck + n_ticks] = v[k_prev]
-    w[k_stuck:k_stuck + n_ticks] = w[k_prev]
+    moving = np.flatnonzero((np.abs(v[:k_from]) > 1e-4) | (np.abs(w[:k_from]) > 1e-4))
+    k_prev = int(moving[-1]) if moving.size else max(k_from - 1, 0)
+    v[k_from:k_to] = v[k_prev]
+    w[k_from:k_to] = w[k_prev]
     return v, w
 
 

@@ -120,11 +120,10 @@ def simulate(cfg: SimConfig) -> SimRun:
     cat = simulate_catalog(world, cfg.sensors.orbital, rngs[4])
 
     windows = {name: F.window_s(f, t[0], t[-1]) for name, f in faults.active().items()}
-    if k_stuck >= 0:
-        windows["stuck"] = (float(t[k_stuck]), float(t[k_stuck] + n_stuck * dt))
     v_cmd, w_cmd = cmd.v_mps, cmd.yaw_rate_radps
-    if k_stuck >= 0:
-        v_cmd, w_cmd = F.spin_commands(v_cmd, w_cmd, k_stuck, n_stuck)
+    if k_stuck >= 0:  # ticks k_stuck - 1 .. k_stuck + n_stuck - 1 share one true pose
+        windows["stuck"] = (float(t[k_stuck - 1]), float(t[k_stuck + n_stuck]))
+        v_cmd, w_cmd = F.spin_commands(v_cmd, w_cmd, k_stuck - 1, k_stuck + n_stuck)
     quat_imu, gyro, accel = imu.quat_xyzw, imu.gyro_radps, imu.accel_mps2
     if faults.imu_bias_step is not None:
         quat_imu, gyro, accel = F.biased_imu(t, dt, quat_imu, gyro, accel, faults.imu_bias_step, windows["imu_bias_step"])
