@@ -45,7 +45,8 @@ __all__ = [
 @dataclass(frozen=True)
 class FixAttempt:
     """One matching attempt at ``t_meas``: ``status`` is "fix", "no match", "too few landmarks",
-    "stale map" (no new observation of the map since the last attempt) or "bad scale"; ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
+    "stale map" (too few new observations of the map since the last attempt) or "bad scale";
+    ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
     (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time;
     ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``);
     ``source``: the relocalizer that made it (its kinds, "+"-joined)."""

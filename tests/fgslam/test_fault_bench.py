@@ -34,3 +34,16 @@ def test_table_has_a_row_per_scenario_and_the_fault_free_reference(blackout):
     assert [r.split(" | ")[0] for r in rows[1:]] == ["| none", "| camera_blackout"]
     assert set(blackout["free_ate_online_m"]) == set(VARIANTS)
     assert "finished: 4/4" in rows[-1]
+
+
+def test_cli_refuses_bad_options_before_any_work(tmp_path, capsys):
+    from fgslam.cli import main
+
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--only", "blackout"]) == 2
+    assert "unknown scenario(s) ['blackout']" in capsys.readouterr().err
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text("faults: {stuck: {}}\n")
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    assert "the scenarios set the faults block" in capsys.readouterr().err
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--distance-m", "nan"]) == 2
+    assert not (tmp_path / "o").exists()
