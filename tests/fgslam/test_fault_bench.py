@@ -16,7 +16,8 @@ def blackout():
 
 def test_blackout_finishes_covariance_grows_honestly_and_the_ekf_recovers(blackout):
     entry = blackout["scenarios"]["camera_blackout"]
-    assert entry["window_s"] == [10.0, 30.0]
+    assert entry["window_s"] == [10.0, 30.0] == blackout["scenarios"]["none"]["window_s"]
+    assert "blind" in blackout["scenarios"]["none"]["runs"]["ekf"]
     for k in VARIANTS:
         m = entry["runs"][k]
         assert goals_met(m)["finished"], k
