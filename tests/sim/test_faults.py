@@ -84,7 +84,7 @@ def test_imu_bias_step_offsets_rates_and_integrates_into_yaw():
     np.testing.assert_allclose(d_gyro[on], np.tile(step.gyro_radps, (on.sum(), 1)), atol=1e-12)
     np.testing.assert_allclose(d_gyro[~on], 0.0, atol=1e-12)
     np.testing.assert_allclose(d_acc[on], np.tile(step.accel_mps2, (on.sum(), 1)), atol=1e-12)
-    yaw = lambda ms: Rotation.from_quat([m.quat_xyzw for m in ms]).as_euler("ZYX")[:, 0]  # noqa: E731
+    yaw = lambda ms: Rotation.from_quat([m.quat_xyzw for m in ms]).as_euler("ZYX")[:, 0]
     d_yaw = wrap_angle(yaw(imu) - yaw(ref))
     expected = step.gyro_radps[2] * np.clip(t - 10.0, 0.0, 15.0)
     np.testing.assert_allclose(d_yaw, expected, atol=2e-3)
