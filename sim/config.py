@@ -12,6 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from sim.errors import SimError
+from sim.faults import FaultsConfig, validate_faults
 from sim.tiled.config import TiledWorldConfig
 
 
@@ -184,6 +185,7 @@ class SimConfig:
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     t_start_s: float = 0.0
     tiled: TiledWorldConfig = field(default_factory=TiledWorldConfig)  # the kilometre presets' world
+    faults: FaultsConfig = field(default_factory=FaultsConfig)  # sensor faults (sim/faults.py), all off
 
 
 def resolve_orbital(cfg: OrbitalConfig) -> OrbitalConfig:
@@ -217,3 +219,7 @@ def validate(cfg: SimConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise SimConfigError(f"invalid simulator config: {msg}")
+    from sim.tiled.presets import is_tiled
+
+    rates = [cfg.sensors.imu.rate_hz, cfg.sensors.cmd.rate_hz, st.rate_hz]
+    validate_faults(cfg.faults, max(rates), is_tiled(cfg.world))

@@ -20,7 +20,8 @@ from reloc.measurements import (
     WheelOdometry,
     sort_key,
 )
-from sim.config import SimConfig, resolve_orbital, validate
+from sim import faults as F
+from sim.config import SimConfig, SimConfigError, resolve_orbital, validate
 from sim.rocks import Rocks
 from sim.route import plan_route
 from sim.rover import drive_route, insert_pauses, terrain_poses
@@ -95,10 +96,19 @@ def simulate(cfg: SimConfig) -> SimRun:
     validate(cfg)
     world = build_world(cfg.world, cfg.seed, cfg.worldgen)
     cfg = resolve_config(cfg, world)
-    rngs = [np.random.default_rng([cfg.seed, 100 + k]) for k in range(6)]
+    rngs = [np.random.default_rng([cfg.seed, 100 + k]) for k in range(7)]
     route, path, cruise = _drive(world, cfg, rngs[0])
     cfg = dataclasses.replace(cfg, rover=dataclasses.replace(cfg.rover, cruise_speed_mps=float(cruise)))
     dt = path.dt_s
+    faults = cfg.faults
+    k_stuck, n_stuck = -1, 0
+    if faults.stuck is not None:  # the truth stands still: held before the poses are built
+        speed = np.hypot(np.diff(path.x_m, prepend=path.x_m[0]), np.diff(path.y_m, prepend=path.y_m[0])) / dt
+        k_stuck = F.stuck_tick(speed, dt, faults.stuck)
+        if k_stuck < 0:
+            raise SimConfigError(f"faults.stuck.start_s {faults.stuck.start_s} s: the rover does not move after it")
+        n_stuck = round(faults.stuck.duration_s / dt)
+        path = F.held_path(path, k_stuck, n_stuck)
     T = terrain_poses(world.terrain, path, cfg.rover)
     K = len(T)
     t = cfg.t_start_s + dt * np.arange(K)
@@ -109,18 +119,41 @@ def simulate(cfg: SimConfig) -> SimRun:
     stereo = simulate_stereo(world, T[frame_ticks], cfg.sensors.stereo, rngs[3])
     cat = simulate_catalog(world, cfg.sensors.orbital, rngs[4])
 
+    windows = {name: F.window_s(f, t[0], t[-1]) for name, f in faults.active().items()}
+    v_cmd, w_cmd = cmd.v_mps, cmd.yaw_rate_radps
+    if k_stuck >= 0:  # ticks k_stuck - 1 .. k_stuck + n_stuck - 1 share one true pose
+        windows["stuck"] = (float(t[k_stuck - 1]), float(t[k_stuck + n_stuck]))
+        v_cmd, w_cmd = F.spin_commands(v_cmd, w_cmd, k_stuck - 1, k_stuck + n_stuck)
+    quat_imu, gyro, accel = imu.quat_xyzw, imu.gyro_radps, imu.accel_mps2
+    if faults.imu_bias_step is not None:
+        quat_imu, gyro, accel = F.biased_imu(t, dt, quat_imu, gyro, accel, faults.imu_bias_step, windows["imu_bias_step"])
+    keep = F.frame_masks(t[frame_ticks], stereo.rock, faults, t[0], t[-1])
+    stamps = {name: t for name in ("cmd", "imu", "wheel")} | {"rocks": t[frame_ticks]}
+    if faults.timestamp_jitter is not None:  # each topic's recorder clock on its own draw
+        stamps = {name: F.jittered_stamps(ts, faults.timestamp_jitter, windows["timestamp_jitter"], rngs[6])
+                  for name, ts in stamps.items()}
+
     meas: list[Measurement] = []
     quat_gt = Rotation.from_matrix(T[:, :3, :3]).as_quat()
     for k in range(K):
-        meas.append(CmdVel(t[k], cmd.v_mps[k], cmd.yaw_rate_radps[k]))
-        meas.append(ImuSample(t[k], imu.quat_xyzw[k], imu.gyro_radps[k], imu.accel_mps2[k]))
+        meas.append(CmdVel(stamps["cmd"][k], v_cmd[k], w_cmd[k]))
+        meas.append(ImuSample(stamps["imu"][k], quat_imu[k], gyro[k], accel[k]))
         meas.append(GroundTruthPose(t[k], T[k, :3, 3], quat_gt[k]))
     if cfg.sensors.wheel_odometry:
         noise = 1.0 + cfg.sensors.wheel_speed_noise_rel * rngs[5].standard_normal(K)
         for k in range(K):
-            meas.append(WheelOdometry(t[k], cmd.v_mps[k] * noise[k], cmd.yaw_rate_radps[k]))
+            meas.append(WheelOdometry(stamps["wheel"][k], v_cmd[k] * noise[k], w_cmd[k]))
+    no_rocks = (F.in_window(t[frame_ticks], windows["no_rocks"]) if "no_rocks" in windows
+                else np.zeros(len(frame_ticks), bool))
+    stereo_rock, stereo_visible = [], []
     for i, k in enumerate(frame_ticks):
-        meas.append(RockObservations(t[k], stereo.xyz_base_m[i], stereo.cov_base_m2[i], stereo.size_m[i], stereo.score[i]))
+        m = keep[i]
+        if m is None:  # camera blackout: no frame
+            continue
+        meas.append(RockObservations(stamps["rocks"][i], stereo.xyz_base_m[i][m], stereo.cov_base_m2[i][m],
+                                     stereo.size_m[i][m], stereo.score[i][m]))
+        stereo_rock.append(stereo.rock[i][m])
+        stereo_visible.append(stereo.visible[i][:0] if no_rocks[i] else stereo.visible[i])
     meas.sort(key=sort_key)
 
     p = T[:, :3, 3]
@@ -137,7 +170,7 @@ def simulate(cfg: SimConfig) -> SimRun:
         "slip_mean": float(np.mean(cmd.slip[np.abs(cmd.v_mps) > 1e-4])) if np.any(np.abs(cmd.v_mps) > 1e-4) else 0.0,
         "imu_final_yaw_error_deg": float(np.rad2deg(imu.yaw_error_rad[-1])),
         "cruise_speed_mps": float(cruise),
-        "n_stereo_frames": len(frame_ticks),
+        "n_stereo_frames": len(stereo_rock),
         "n_visible": stereo.n_visible,
         "n_detections": stereo.n_detections,
         "stereo_precision": stereo.n_true / max(stereo.n_detections, 1),
@@ -150,6 +183,8 @@ def simulate(cfg: SimConfig) -> SimRun:
         "n_route_waypoints": len(route),
         "n_measurements": len(meas),
     }
+    if windows:
+        stats["faults"] = {name: [float(a), float(min(b, t[-1]))] for name, (a, b) in windows.items()}
     log.info("simulated %s seed %d: %.1f m in %.1f s, drift %.2f %%", world.name, cfg.seed,
              distance, stats["duration_s"], stats["drift_pct"])
     return SimRun(
@@ -162,8 +197,8 @@ def simulate(cfg: SimConfig) -> SimRun:
         catalog_rock=cat.rock,
         rocks_true=world.rocks,
         stats=stats,
-        stereo_rock=stereo.rock,
-        stereo_visible=stereo.visible,
+        stereo_rock=stereo_rock,
+        stereo_visible=stereo_visible,
     )
 
 

@@ -44,8 +44,9 @@ __all__ = [
 
 @dataclass(frozen=True)
 class FixAttempt:
-    """One matching attempt at ``t_meas``: ``status`` is "fix", "no match", "too few landmarks" or
-    "bad scale"; ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
+    """One matching attempt at ``t_meas``: ``status`` is "fix", "no match", "too few landmarks",
+    "stale map" (too few new observations of the map since the last attempt) or "bad scale";
+    ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
     (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time;
     ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``);
     ``source``: the relocalizer that made it (its kinds, "+"-joined)."""
@@ -93,6 +94,7 @@ class Relocalizer:
         self._fit_floor_sigma_m = float(getattr(mc, "fit_floor_sigma_m", 0.0))
         self._fix_times: list[float] = []
         self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
+        self._last_n_obs: dict[int, int] | None = None  # landmark id -> observations, at the last attempt
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
@@ -125,6 +127,8 @@ class Relocalizer:
         cfg = self.config
         est_xyyaw = np.array([est.position_m[0], est.position_m[1], est.yaw_rad])
         self._last_xyyaw = est_xyyaw
+        if self._stale(lmap):
+            return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
         idx = select_local_map(lmap, est.position_m, cfg)
         if idx.size < cfg.min_landmarks:
             return FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
@@ -175,6 +179,16 @@ class Relocalizer:
         self._fix_times.append(est.t)
         np.add.at(self._rock_uses, np.unique(pairs[:, 1]), 1)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
+
+    def _stale(self, lmap: LandmarkMap) -> bool:
+        """Whether fewer than ``min_new_observations`` observations joined ``lmap`` since the last
+        attempt (never for the first one); remembers the map's counts for the next."""
+        counts = dict(zip(lmap.ids.tolist(), lmap.n_obs.tolist()))
+        last, self._last_n_obs = self._last_n_obs, counts
+        if last is None or self.config.min_new_observations == 0:
+            return False
+        new = sum(n - last.get(i, 0) for i, n in counts.items() if n > last.get(i, 0))
+        return new < self.config.min_new_observations
 
     def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
         """Match against the catalog rocks that can hold the map under ``prior``; returns the

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 from fgslam.errors import FgslamError
-from reloc.config import Ge, Interval, NonNegative, Positive, PositiveInt, checked
+from reloc.config import Ge, Interval, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from reloc.errors import ConfigError
 
 
@@ -34,6 +34,10 @@ class RelocalizerConfig:
     # min_turn_deg since the last one (standing still, its map and pose say nothing new: my2021,
     # 687 -> 554 attempts, the same ATE, 44 -> 48x real time); both 0: never skipped
     min_travel_m: NonNegative = 0.05
+    # an attempt needs this many landmark observations added to the map since the previous attempt:
+    # a map the rover has not seen lately (camera blackout) places the rover by odometry only, so
+    # its match would be a confident fix of a dead-reckoned pose (docs/sim.md, "Faults"); 0: off
+    min_new_observations: NonNegativeInt = 3
     min_turn_deg: NonNegative = 3.0
     latency: Literal["fixed", "measured"] = "fixed"  # "fixed": t_recv = t_meas + delay_s; "measured": + matching wall time
     delay_s: NonNegative = 2.0

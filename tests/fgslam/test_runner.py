@@ -147,7 +147,8 @@ def _map_and_pose(stream):
 
 def test_successive_fixes_are_deweighted_for_their_shared_error(stream):
     lmap, est = _map_and_pose(stream)
-    cfg = RelocalizerConfig(correlation="window", correlation_window_s=60.0, min_landmarks=5)
+    cfg = RelocalizerConfig(correlation="window", correlation_window_s=60.0, min_landmarks=5,
+                             min_new_observations=0)  # one map snapshot, attempted again
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     a1 = reloc.attempt(lmap, est)
     a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
@@ -161,7 +162,7 @@ def test_fixes_on_shared_catalog_rocks_are_deweighted_whenever_they_were_made(st
     """correlation "rocks": the covariance grows with the earlier fixes' use of the same catalog
     rocks, however long ago; a fix on other rocks keeps its own covariance."""
     lmap, est = _map_and_pose(stream)
-    reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5),
+    reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5, min_new_observations=0),  # one snapshot
                         matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     assert reloc.config.correlation == "rocks"
     a1 = reloc.attempt(lmap, est)
@@ -184,7 +185,7 @@ def test_nearby_attempts_share_one_catalog_crop_and_its_fix(stream):
     """Crops are cut on a grid: attempts a few decimetres apart reuse one crop (and its index),
     and the cached crop gives the fix a fresh relocalizer gives."""
     lmap, est = _map_and_pose(stream)
-    cfg = RelocalizerConfig(min_landmarks=5, correlation="none")
+    cfg = RelocalizerConfig(min_landmarks=5, correlation="none", min_new_observations=0)  # one map snapshot
     reloc = Relocalizer(stream.catalog, cfg)
     first = reloc.attempt(lmap, est)
     T = est.T_world_base.copy()

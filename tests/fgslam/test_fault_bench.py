@@ -1,0 +1,50 @@
+"""``fgslam bench faults`` on a tiny seeded scenario: a camera blackout on cnes, both back-ends."""
+
+from __future__ import annotations
+
+import pytest
+
+from fgslam.bench.faults import VARIANTS, FaultBenchConfig, goals_met, markdown, run_fault_bench
+from fgslam.compare import CompareConfig
+
+
+@pytest.fixture(scope="module")
+def blackout():
+    cfg = FaultBenchConfig(world="cnes", seed=1, distance_m=6.0, start_s=10.0, duration_s=20.0, end_window_s=5.0)
+    return run_fault_bench(cfg, CompareConfig(), only=("camera_blackout",))
+
+
+def test_blackout_finishes_covariance_grows_honestly_and_the_ekf_recovers(blackout):
+    entry = blackout["scenarios"]["camera_blackout"]
+    assert entry["window_s"] == [10.0, 30.0] == blackout["scenarios"]["none"]["window_s"]
+    assert "blind" in blackout["scenarios"]["none"]["runs"]["ekf"]
+    for k in VARIANTS:
+        m = entry["runs"][k]
+        assert goals_met(m)["finished"], k
+        assert m["sigma_growth"] > 3.0, k  # dead reckoning while blind
+        assert m["blind"]["verdict"] != "optimistic", k  # the grown covariance covers the error
+        assert m["blind"]["n"] > 100 and m["blind"]["n_eff"] < m["blind"]["n"], k
+        assert m["end_rmse_m"] < 0.1, k
+    assert entry["runs"]["ekf"]["end_ratio"] <= 2.0  # back to its fault-free level (sees its map again)
+    assert entry["runs"]["ekf"]["recovery_s"] is not None and entry["runs"]["ekf"]["recovery_s"] < 15.0
+
+
+def test_table_has_a_row_per_scenario_and_the_fault_free_reference(blackout):
+    table = markdown(blackout)
+    rows = [line for line in table.splitlines() if line.startswith("| ")]
+    assert [r.split(" | ")[0] for r in rows[1:]] == ["| none", "| camera_blackout"]
+    assert set(blackout["free_ate_online_m"]) == set(VARIANTS)
+    assert "finished: 4/4" in rows[-1]
+
+
+def test_cli_refuses_bad_options_before_any_work(tmp_path, capsys):
+    from fgslam.cli import main
+
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--only", "blackout"]) == 2
+    assert "unknown scenario(s) ['blackout']" in capsys.readouterr().err
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text("faults: {stuck: {}}\n")
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    assert "the scenarios set the faults block" in capsys.readouterr().err
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--distance-m", "nan"]) == 2
+    assert not (tmp_path / "o").exists()
