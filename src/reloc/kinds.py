@@ -249,3 +249,9 @@ ROCKS = register_kind(LandmarkKind(
     relocalizer="fgslam.relocalizer:Relocalizer", catalog="fgslam.io.catalog_csv:ROCK_CATALOG_FILE",
     rerun="fgslam.viz.landmarks:PointLandmarkLogger",
 ))
+CRATERS = register_kind(LandmarkKind(
+    name="craters", measurement="reloc.craters:CraterObservations", rank=FIRST_KIND_RANK + 1, symbol="r",
+    bag="reloc.crater_bag:CRATER_CODEC", ekf="ekf.craters:CraterUpdate", smoother="fgslam.smoother.craters:CraterLandmarks",
+    relocalizer="fgslam.crater_relocalizer:CraterRelocalizer", catalog="fgslam.io.crater_csv:CRATER_CATALOG_FILE",
+    rerun="fgslam.viz.landmarks:PointLandmarkLogger",
+))
