@@ -145,7 +145,7 @@ class CraterSensorConfig:
     min_diameter_m: float = 1.0  # smaller rims are lost in the rocks and the ripples
     min_range_m: float = 1.0
     max_range_m: float = 25.0  # rim points beyond this are not fitted (stereo depth sigma ~1 m there)
-    min_completeness: float = 0.25  # share of the rim in view for a crater to be recognised
+    min_completeness: float = 0.15  # share of the rim in view (54 deg of arc) for a crater to be recognised
     min_apparent_deg: float = 5.0  # the rim spans at least this angle from the camera (1 m: 11 m away)
     n_rim_samples: int = 72  # rim samples that decide what is in view
     rim_points_per_m: float = 2.0  # independent stereo rim points per metre of rim in view

@@ -24,6 +24,7 @@ from ekf.errors import EkfInputError
 from ekf.kinds import kind_config
 from ekf.rocks import RockUpdate
 from reloc.association import AssociationConfig
+from reloc.backend import LandmarkUpdateReport
 from reloc.budget import ObservationBudget
 from reloc.config import NonNegative, Positive
 from reloc.craters import CraterObservations
@@ -41,6 +42,7 @@ class CraterEkfConfig:
     candidate_margin_m: NonNegative = 5.0
     budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=10, max_new=0))
     skip_lone_ambiguous_pair: bool = True
+    use: bool = True  # False: crater frames are counted and left out (a rocks-only run of the same stream)
 
 
 class CraterUpdate(RockUpdate):
@@ -59,6 +61,13 @@ class CraterUpdate(RockUpdate):
 
     def _bump(self, count: bool, **kw: int) -> None:
         super()._bump(count, **{f"crater_{k}": v for k, v in kw.items()})
+
+    def update(self, s, obs: CraterObservations, count: bool = True) -> LandmarkUpdateReport:
+        """The rock update with the crater settings (see module doc); nothing when ``use`` is off."""
+        if not self.crater_config.use:
+            self._bump(count, n_frames_skipped=1)
+            return LandmarkUpdateReport(obs.t, len(obs), 0, 0, len(obs))
+        return super().update(s, obs, count)
 
     def check(self, obs: CraterObservations) -> None:
         """Finite, consistently shaped arrays (the filter checks the time order)."""

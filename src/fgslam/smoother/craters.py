@@ -18,6 +18,7 @@ from fgslam.smoother.kinds import kind_config
 from fgslam.smoother.landmarks import LandmarkStore
 from fgslam.smoother.rocks import RockLandmarks
 from reloc.association import AssociationConfig
+from reloc.backend import LandmarkUpdateReport
 from reloc.budget import ObservationBudget
 from reloc.config import NonNegative, Positive, PositiveInt
 from reloc.kinds import LandmarkKind
@@ -35,6 +36,7 @@ class CraterSmootherConfig:
     cov_scale: Positive = 1.0  # the reported rim-centre covariance is multiplied by this
     min_frame_interval_s: NonNegative = 0.95
     budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=10, max_new=3))
+    use: bool = True  # False: crater frames are counted and left out (a rocks-only run of the same stream)
 
 
 class CraterLandmarks(RockLandmarks):
@@ -51,6 +53,13 @@ class CraterLandmarks(RockLandmarks):
             candidate_timeout_s=c.candidate_timeout_s, huber_k=c.huber_k, rock_cov_scale=c.cov_scale,
             min_frame_interval_s=c.min_frame_interval_s, budget=c.budget)
         self.store = LandmarkStore(self.cfg)
+
+    def observe(self, obs, frame) -> LandmarkUpdateReport:
+        """The rock layer's association and factors with the crater settings; nothing when ``use`` is off."""
+        if not self.crater_config.use:
+            self.n_frames_skipped += 1
+            return LandmarkUpdateReport(obs.t, len(obs), 0, 0, len(obs))
+        return super().observe(obs, frame)
 
     def stats(self) -> dict:
         return {f"crater_{k}": v for k, v in super().stats().items()}
