@@ -173,3 +173,29 @@ def test_the_crater_catalog_file_is_read_and_checked(tmp_path):
     f.write_text("x,y,size\n1,2,-4\n")
     with pytest.raises(InputFileError, match="positive diameter"):
         CRATER_CATALOG_FILE.read(f)
+
+
+def test_a_sim_directory_with_craters_compares_and_draws_rims(tmp_path):
+    from rerun.chunk import RrdReader
+
+    from fgslam.compare import CompareConfig, compare_world
+    from fgslam.inputs import load_sim_dir
+    from fgslam.io.catalog_csv import write_catalog_csv
+    from fgslam.viz import rerun_log
+    from sim.bag_writer import write_bag
+
+    synth = make_stream(seed=11, duration_s=40.0, craters=True)
+    write_bag(tmp_path / "d" / "bag", synth.measurements)
+    write_catalog_csv(tmp_path / "d" / "catalog.csv", synth.catalogs["rocks"])
+    write_catalog_csv(tmp_path / "d" / "craters.csv", synth.catalogs["craters"])
+    loaded = load_sim_dir(tmp_path / "d")
+    assert set(loaded.catalogs) == {"rocks", "craters"}
+    cfg = CompareConfig(backends=("ekf",), reference_backend="ekf", workers=1, kind_relocalizers={"craters": {"period_s": 5.0}})
+    wc = compare_world(loaded, cfg)
+    assert wc.metrics["runs"]["ekf_reloc"]["landmarks_by_kind"]["craters"] >= 5
+    assert "craters" in {a.source for a in wc.attempts}
+    assert any(a.fix is not None for a in wc.attempts if a.source == "craters")
+    path = rerun_log.write_comparison_rrd(tmp_path / "c.rrd", [wc])
+    paths = {c.entity_path for c in RrdReader(path).stream()}
+    w = "/" + loaded.name
+    assert {f"{w}/map/catalog/craters", f"{w}/ekf_reloc/landmarks/craters", f"{w}/ekf_reloc/landmarks/craters/rims"} <= paths
