@@ -199,3 +199,41 @@ def test_a_sim_directory_with_craters_compares_and_draws_rims(tmp_path):
     paths = {c.entity_path for c in RrdReader(path).stream()}
     w = "/" + loaded.name
     assert {f"{w}/map/catalog/craters", f"{w}/ekf_reloc/landmarks/craters", f"{w}/ekf_reloc/landmarks/craters/rims"} <= paths
+
+
+def _cli(args, capsys) -> tuple[int, str, str]:
+    from fgslam.cli import main
+
+    try:
+        rc = main(args)
+    except SystemExit as exc:
+        rc = exc.code
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def test_bench_craters_measures_a_directory_and_refuses_bad_arguments(tmp_path, capsys):
+    import json
+
+    from fgslam.io.catalog_csv import write_catalog_csv
+    from sim.bag_writer import write_bag
+
+    synth = make_stream(seed=8, duration_s=60.0, gyro_bias_radps=0.001, craters=True)
+    d = tmp_path / "d"
+    write_bag(d / "bag", synth.measurements)
+    write_catalog_csv(d / "catalog.csv", synth.catalogs["rocks"])
+    rc, _, err = _cli(["bench", "craters", str(d), "--passes", "craters alone"], capsys)
+    assert rc == 2 and "no craters.csv" in err
+    write_catalog_csv(d / "craters.csv", synth.catalogs["craters"])
+    for args, msg in ((["--passes", "all of them"], "unknown pass"), (["--backend", "dr"], "--backend must be"),
+                      (["--duration-s", "0"], "--duration-s must be > 0")):
+        rc, _, err = _cli(["bench", "craters", str(d), *args], capsys)
+        assert rc == 2 and msg in err, err
+    rc, out, _ = _cli(["bench", "craters", str(d), "--passes", "craters alone,no fixes", "--duration-s", "50",
+                       "--out", str(tmp_path / "o")], capsys)
+    assert rc in (0, None) and "craters alone" in out
+    res = json.loads((tmp_path / "o" / "results.json").read_text())["results"][0]["passes"]
+    cr = res["craters alone"]["crater_reloc"]
+    assert cr["attempts"] >= 3 and cr["with_min_catalogued"] >= 2 and cr["succeeded"] == cr["with_min_catalogued"]
+    assert res["craters alone"]["fixes"]["craters"]["wrong"] == 0
+    assert res["craters alone"]["ate_rmse_m"] < res["no fixes"]["ate_rmse_m"] + 0.05

@@ -41,6 +41,7 @@ class CraterBenchConfig:
     wrong_fix_m: float = 1.5  # a fix this far from the truth is wrong (craters are metres apart)
     mapped_gate_m: float = 1.5
     min_catalogued: int = 6
+    duration_s: float | None = None  # the stretch: the first this many seconds of each bag (None: all)
 
 
 class _CountingRelocalizer:
@@ -88,6 +89,20 @@ def _overrides(directory: Path, backend: str, craters_used: bool) -> dict:
     return over
 
 
+def _stretch(measurements, duration_s: float | None):
+    """The measurements of the first ``duration_s`` seconds (all of them for None), lazily."""
+    if duration_s is None:
+        yield from measurements
+        return
+    t_end = None
+    for m in measurements:
+        if t_end is None:
+            t_end = m.t + duration_s
+        if m.t > t_end:
+            return
+        yield m
+
+
 def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[[str], None] | None = None) -> dict:
     """Every pass of ``cfg`` on the ``fgslam sim`` directory (see module doc): a JSON-ready dict."""
     from fgslam.backends.registry import make_backend
@@ -99,7 +114,7 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
     directory = Path(directory)
     inputs = load_sim_dir(directory)
     gt = truth_of(inputs)
-    out: dict = {"directory": str(directory), "catalog_craters": len(inputs.catalogs.get("craters", ())),
+    out: dict = {"directory": str(directory), "duration_s": cfg.duration_s, "catalog_craters": len(inputs.catalogs.get("craters", ())),
                  "catalog_rocks": len(inputs.catalogs["rocks"]), "passes": {}}
     for name in cfg.passes:
         craters_used, relocs = PASSES[name]
@@ -111,7 +126,8 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
             if r.kinds == ("craters",):
                 counted = producers[i] = _CountingRelocalizer(r, inputs.catalogs["craters"], gt, cfg)
         be = make_backend(cfg.backend, inputs.initial, _overrides(directory, cfg.backend, craters_used))
-        res = run_backend(be, inputs.measurements, OnlineFixes(producers) if producers else NoFixes())
+        res = run_backend(be, _stretch(inputs.measurements, cfg.duration_s),
+                          OnlineFixes(producers) if producers else NoFixes())
         row: dict = {"ate_rmse_m": ate(res.final, gt).rmse, "wall_s": res.wall_s,
                      "landmarks": {k: len(m) for k, m in res.landmarks.items()}}
         accepted = {(o.fix.t_meas, o.fix.t_recv) for o in res.outcomes if o.accepted}
