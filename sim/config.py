@@ -139,6 +139,27 @@ class StereoConfig:
 
 
 @dataclass(frozen=True)
+class CraterSensorConfig:
+    """Crater rims seen by the mast stereo (kilometre worlds; :mod:`sim.sensors.craters`)."""
+
+    enabled: bool = True
+    min_diameter_m: float = 1.0  # smaller rims are lost in the rocks and the ripples
+    min_range_m: float = 1.0
+    max_range_m: float = 25.0  # rim points beyond this are not fitted (stereo depth sigma ~1 m there)
+    min_completeness: float = 0.15  # share of the rim in view (54 deg of arc) for a crater to be recognised
+    min_apparent_deg: float = 5.0  # the rim spans at least this angle from the camera (1 m: 11 m away)
+    n_rim_samples: int = 72  # rim samples that decide what is in view
+    rim_points_per_m: float = 2.0  # independent stereo rim points per metre of rim in view
+    max_rim_points: int = 200
+    irregularity_frac: float = 0.02  # rim departs from a circle by this x D (1 sigma, per point)
+    centre_bias_frac: float = 0.01  # per-crater fixed centre offset sigma / D (rim shape)
+    rim_height_sigma_frac: float = 0.01  # per-crater fixed offset of the rim centre's height / D
+    recall_fresh: float = 0.9  # detection probability of a fresh crater in view
+    degradation_penalty: float = 0.5  # ... times (1 - penalty x degradation)
+    rate_hz: float = 0.5  # crater frames per second (rims change slowly with the view)
+
+
+@dataclass(frozen=True)
 class OrbitalConfig:
     """Nadir rock detector that makes the catalog. ``preset`` 'published' or 'ideal'; None fields
     take the preset's value (see :data:`ORBITAL_PRESETS`)."""
@@ -167,6 +188,7 @@ class SensorsConfig:
     imu: ImuConfig = field(default_factory=ImuConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
     orbital: OrbitalConfig = field(default_factory=OrbitalConfig)
+    craters: CraterSensorConfig = field(default_factory=CraterSensorConfig)
     wheel_odometry: bool = True
     wheel_speed_noise_rel: float = 0.005
 
@@ -215,6 +237,17 @@ def validate(cfg: SimConfig) -> None:
         (st.max_range_m > st.min_range_m > 0, "sensors.stereo needs 0 < min_range_m < max_range_m"),
         (cfg.worldgen.resolution_m > 0, "worldgen.resolution_m must be > 0"),
         (0 < cfg.worldgen.rock_min_diameter_m < cfg.worldgen.rock_max_diameter_m, "worldgen rock diameters"),
+        (cfg.sensors.craters.max_range_m > cfg.sensors.craters.min_range_m > 0,
+         "sensors.craters needs 0 < min_range_m < max_range_m"),
+        (0.0 < cfg.sensors.craters.min_completeness <= 1.0, "sensors.craters.min_completeness must be in (0, 1]"),
+        (0.0 <= cfg.sensors.craters.recall_fresh <= 1.0 and 0.0 <= cfg.sensors.craters.degradation_penalty <= 1.0,
+         "sensors.craters.recall_fresh and degradation_penalty must be in [0, 1]"),
+        (cfg.sensors.craters.rate_hz > 0 and cfg.sensors.craters.n_rim_samples >= 8
+         and cfg.sensors.craters.rim_points_per_m > 0 and cfg.sensors.craters.max_rim_points >= 3
+         and cfg.sensors.craters.min_diameter_m > 0,
+         "sensors.craters needs rate_hz > 0, n_rim_samples >= 8, rim_points_per_m > 0, max_rim_points >= 3, min_diameter_m > 0"),
+        (min(cfg.sensors.craters.irregularity_frac, cfg.sensors.craters.centre_bias_frac,
+             cfg.sensors.craters.rim_height_sigma_frac) >= 0, "sensors.craters error fractions must be >= 0"),
     ]
     for ok, msg in checks:
         if not ok:

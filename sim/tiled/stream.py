@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from reloc.craters import CraterObservations
 from reloc.measurements import (
     CmdVel,
     GroundTruthPose,
@@ -26,6 +27,7 @@ from reloc.measurements import (
 )
 from sim.config import SimConfig, validate
 from sim.rover import terrain_poses
+from sim.sensors.craters import crater_bias, observe_craters
 from sim.sensors.imu import ImuModel
 from sim.sensors.motion import CommandModel
 from sim.sensors.stereo import StereoBias, StereoCamera, calibration_error_base, simulate_stereo
@@ -74,10 +76,13 @@ class TiledSimulation:
         self._bias = StereoBias.draw(0, cfg.sensors.stereo, rngs[4])  # the run's mounting and scale errors
         self._frame_step = max(round(cfg.sensors.imu.rate_hz / cfg.sensors.stereo.rate_hz), 1)
         self._cam = StereoCamera.from_config(cfg.sensors.stereo)
+        self._crater_rng = np.random.default_rng([cfg.seed, 300])  # its own stream: rocks' draws unchanged
+        self._crater_step = max(round(cfg.sensors.imu.rate_hz / cfg.sensors.craters.rate_hz), 1)
         self._progress = progress
         self._used = False
         self._acc = {"distance_m": 0.0, "ticks": 0, "frames": 0, "visible": 0, "detections": 0, "true": 0,
-                     "moving_ticks": 0, "slip_sum": 0.0, "windows": 0, "window_rocks": 0}
+                     "moving_ticks": 0, "slip_sum": 0.0, "windows": 0, "window_rocks": 0,
+                     "crater_frames": 0, "crater_detections": 0, "crater_completeness_sum": 0.0}
         self._p_dr: np.ndarray | None = None  # command dead reckoning after the last tick
         self._dr_end = self._p_end = None  # reckoned and true position at the last tick
         self._imu_yaw_err = 0.0
@@ -115,6 +120,9 @@ class TiledSimulation:
         first = (-tick0) % self._frame_step
         frames = np.arange(first, K, self._frame_step)
         rocks = dict(zip(frames.tolist(), self._stereo(T[frames], t[frames]))) if len(frames) else {}
+        c_frames = np.arange((-tick0) % self._crater_step, K, self._crater_step)
+        craters = dict(zip(c_frames.tolist(), self._craters(T[c_frames], t[c_frames]))) \
+            if len(c_frames) and cfg.sensors.craters.enabled else {}
         # built in stream order (time, then reloc.measurements.KIND_ORDER): no sort needed
         meas: list[Measurement] = []
         v, w = cmd.v_mps.tolist(), cmd.yaw_rate_radps.tolist()
@@ -126,6 +134,8 @@ class TiledSimulation:
             meas.append(GroundTruthPose(t[k], p[k], quat_gt[k]))
             if k in rocks:
                 meas.append(rocks[k])
+            if k in craters:
+                meas.append(craters[k])
         self._account(T, p, imu, cmd, T_prev)
         if self._progress is not None:
             self._progress(self._acc["distance_m"])
@@ -148,6 +158,29 @@ class TiledSimulation:
         a["window_rocks"] += len(window.world.rocks)
         return [RockObservations(t_frames[i], st.xyz_base_m[i], st.cov_base_m2[i], st.size_m[i], st.score[i])
                 for i in range(len(T_frames))]
+
+    def _craters(self, T_frames: np.ndarray, t_frames: np.ndarray) -> list[CraterObservations]:
+        """Crater rims of the frames at ``T_frames`` (F, 4, 4) (:mod:`sim.sensors.craters`)."""
+        cc, st = self.config.sensors.craters, self.config.sensors.stereo
+        xy = (T_frames @ self._cam.T_base_cam)[:, :2, 3]
+        r = cc.max_range_m
+        found = self.world.craters_near((xy[:, 0].min() - r, xy[:, 0].max() + r, xy[:, 1].min() - r,
+                                         xy[:, 1].max() + r), reach_radii=1.0, d_min_m=cc.min_diameter_m)
+        a = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+        rim = found.xy_m[:, None, :] + 0.5 * found.diameter_m[:, None, None] * np.stack([np.cos(a), np.sin(a)], 1)
+        rim_z = self.world.height_at(rim.reshape(-1, 2)).reshape(len(found), 16).mean(axis=1) if len(found) \
+            else np.zeros(0)
+        bias_dir = crater_bias(self.config.seed, found.id)
+        out = []
+        for T, t in zip(T_frames, t_frames):
+            obs, _ = observe_craters(found, rim_z, T, float(t), cc, st, self._cam, self._bias, bias_dir,
+                                     self._crater_rng)
+            out.append(obs)
+        a = self._acc
+        a["crater_frames"] += len(out)
+        a["crater_detections"] += sum(len(o) for o in out)
+        a["crater_completeness_sum"] += float(sum(o.completeness.sum() for o in out))
+        return out
 
     def _account(self, T, p, imu, cmd, T_prev) -> None:
         a, dt = self._acc, self.dt_s
@@ -195,6 +228,9 @@ class TiledSimulation:
                                    cfg.tiled.route.revisit_radius_m, cfg.tiled.route.revisit_after_s),
             "tiles_generated": self.world.tiles_made,
             "mean_window_rocks": a["window_rocks"] / max(a["windows"], 1),
+            "n_crater_frames": a["crater_frames"],
+            "n_crater_detections": a["crater_detections"],
+            "crater_mean_completeness": a["crater_completeness_sum"] / max(a["crater_detections"], 1),
             "peak_rss_mb_after_drive": round(peak_rss_mb(), 1),
         }
         log.info("simulated %s seed %d: %.1f m in %.1f s, command dead-reckoning drift %.2f %%", cfg.world,

@@ -1,7 +1,7 @@
 """Landmark kinds as plug-ins: the one registry the runner, the back-ends and the bag reader
 dispatch on.
 
-A landmark kind (rocks; craters next) is one module per layer, named in one
+A landmark kind (rocks, craters) is one module per layer, named in one
 :class:`LandmarkKind` and registered once (:func:`register_kind`); nothing else is edited:
 
 - ``measurement`` (reloc): the observation type (``t``, ``xyz_base_m`` (N, 3), ``cov_base_m2``
@@ -248,4 +248,10 @@ ROCKS = register_kind(LandmarkKind(
     bag="reloc.rock_bag:ROCK_CODEC", ekf="ekf.rocks:RockUpdate", smoother="fgslam.smoother.rocks:RockLandmarks",
     relocalizer="fgslam.relocalizer:Relocalizer", catalog="fgslam.io.catalog_csv:ROCK_CATALOG_FILE",
     rerun="fgslam.viz.landmarks:PointLandmarkLogger",
+))
+CRATERS = register_kind(LandmarkKind(
+    name="craters", measurement="reloc.craters:CraterObservations", rank=FIRST_KIND_RANK + 1, symbol="r",
+    bag="reloc.crater_bag:CRATER_CODEC", ekf="ekf.craters:CraterUpdate", smoother="fgslam.smoother.craters:CraterLandmarks",
+    relocalizer="fgslam.crater_relocalizer:CraterRelocalizer", catalog="fgslam.io.crater_csv:CRATER_CATALOG_FILE",
+    rerun="fgslam.viz.craters:CraterLogger",
 ))

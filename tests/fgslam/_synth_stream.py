@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fgslam.inputs import RunInputs, start_pose_from_truth
+from reloc.craters import CraterObservations, rim_fit_covariance
 from reloc.measurements import (
     CmdVel,
     GroundTruthPose,
@@ -26,9 +27,14 @@ from reloc.measurements import (
 
 def make_stream(seed: int = 0, duration_s: float = 60.0, speed_mps: float = 0.25, slip: float = 0.95,
                 gyro_bias_radps: float = 0.002, field_m: float = 40.0, density_per_m2: float = 0.25,
-                sigma_obs_m: float = 0.03, catalog_sigma_m: float = 0.03) -> RunInputs:
-    """Seeded inputs: 30 Hz cmd/IMU/truth, 2 Hz rock frames; the start is at (-8, -8) heading +x."""
+                sigma_obs_m: float = 0.03, catalog_sigma_m: float = 0.03, craters: bool = False,
+                rocks_on: bool = True) -> RunInputs:
+    """Seeded inputs: 30 Hz cmd/IMU/truth, 2 Hz rock frames; the start is at (-8, -8) heading +x.
+    ``craters``: also a crater field (its own random stream: the rocks' draws are unchanged),
+    0.5 Hz crater frames (:func:`crater_frame`) and a crater catalog; ``rocks_on`` False leaves
+    the rock frames out (a crater-only run)."""
     rng = np.random.default_rng(seed)
+    crater_field = CraterField.draw(seed, 3 * field_m) if craters else None
     n_rocks = int(density_per_m2 * field_m**2)
     rocks = rng.uniform(-field_m / 2, field_m / 2, (n_rocks, 2))
     sizes = np.clip(0.1 * (1 - rng.uniform(0, 1, n_rocks)) ** (-1 / 2.0), 0.1, 1.5)
@@ -60,16 +66,70 @@ def make_stream(seed: int = 0, duration_s: float = 60.0, speed_mps: float = 0.25
             m = int(vis.sum())
             xyz = np.column_stack([local[vis], np.zeros(m)]) + rng.normal(0, sigma_obs_m, (m, 3))
             cov = np.tile(np.eye(3) * sigma_obs_m**2, (m, 1, 1))
-            meas.append(RockObservations(tk, xyz, cov, sizes[vis] * rng.uniform(0.9, 1.1, m), np.full(m, 0.9)))
+            if rocks_on:
+                meas.append(RockObservations(tk, xyz, cov, sizes[vis] * rng.uniform(0.9, 1.1, m), np.full(m, 0.9)))
+        if crater_field is not None and k % 60 == 0:
+            meas.append(crater_field.frame(tk, x, y, yaw))
     meas.sort(key=sort_key)
     keep = rng.uniform(0, 1, n_rocks) < 0.8
     catalog = RockCatalog(rocks[keep] + rng.normal(0, catalog_sigma_m, (int(keep.sum()), 2)), sizes[keep],
                           np.full(int(keep.sum()), 0.5))
     gt0 = next(m for m in meas if isinstance(m, GroundTruthPose))
     img = (rng.uniform(0, 1, (64, 64, 3)) * 255).astype(np.uint8)
-    return RunInputs(name=f"synth{seed}", measurements=meas, catalogs={"rocks": catalog}, initial=start_pose_from_truth(gt0),
+    catalogs = {"rocks": catalog}
+    if crater_field is not None:
+        catalogs["craters"] = crater_field.catalog()
+    return RunInputs(name=f"synth{seed}", measurements=meas, catalogs=catalogs, initial=start_pose_from_truth(gt0),
                      orbital_image=img, orbital_extent=(-field_m / 2, field_m / 2, -field_m / 2, field_m / 2),
                      rocks_true_xy=rocks, source={"kind": "synthetic", "seed": seed})
+
+
+class CraterField:
+    """Craters of 2-8 m on flat ground, seen by a forward stereo within 25 m and +-40 deg: each a
+    circle fit of the rim points in view (:func:`reloc.craters.rim_fit_covariance`, 0.1 m per
+    point, 2 points per metre of rim), its centre and diameter drawn from that covariance."""
+
+    def __init__(self, xy: np.ndarray, d: np.ndarray, rng: np.random.Generator) -> None:
+        self.xy, self.d, self.rng = xy, d, rng
+
+    @staticmethod
+    def draw(seed: int, extent_m: float, density_per_m2: float = 0.02) -> CraterField:
+        rng = np.random.default_rng([seed, 15])
+        n = int(density_per_m2 * extent_m**2)
+        return CraterField(rng.uniform(-extent_m / 2, extent_m / 2, (n, 2)), rng.uniform(2.0, 8.0, n), rng)
+
+    def frame(self, t: float, x: float, y: float, yaw: float) -> CraterObservations:
+        a = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+        c, s = np.cos(yaw), np.sin(yaw)
+        Rwb = np.array([[c, -s], [s, c]])
+        xyz, cov, size, sig, comp = [], [], [], [], []
+        for j in range(len(self.xy)):
+            rim = self.xy[j] + 0.5 * self.d[j] * np.column_stack([np.cos(a), np.sin(a)]) - [x, y]
+            loc = rim @ Rwb
+            r = np.linalg.norm(loc, axis=1)
+            vis = (r > 1.0) & (r < 25.0) & (np.abs(np.arctan2(loc[:, 1], loc[:, 0])) < np.deg2rad(40))
+            if vis.mean() < 0.3:
+                continue
+            n_pts = max(int(vis.mean() * np.pi * self.d[j] * 2.0), 3)
+            C = rim_fit_covariance(a[vis], 0.1) * (vis.sum() / n_pts)
+            Cw = np.zeros((3, 3))
+            Cw[:2, :2], Cw[2, 2] = C[:2, :2], 0.01
+            e = np.linalg.cholesky(Cw) @ self.rng.standard_normal(3)
+            R3 = np.eye(3)
+            R3[:2, :2] = Rwb
+            xyz.append(np.array([*((self.xy[j] - [x, y]) @ Rwb), 0.0]) + R3.T @ e)
+            cov.append(R3.T @ Cw @ R3)
+            sig.append(2.0 * np.sqrt(C[2, 2]))
+            size.append(self.d[j] + sig[-1] * self.rng.standard_normal())
+            comp.append(vis.mean())
+        n = len(xyz)
+        return CraterObservations(t, np.reshape(xyz, (n, 3)), np.reshape(cov, (n, 3, 3)), np.maximum(size, 0.5),
+                                  np.array(sig), np.array(comp), np.full(n, 0.9))
+
+    def catalog(self, sigma_m: float = 0.15) -> RockCatalog:
+        rng = np.random.default_rng(1)
+        return RockCatalog(self.xy + rng.normal(0, sigma_m, self.xy.shape), self.d * np.exp(0.05 * rng.standard_normal(len(self.d))),
+                           np.full(len(self.d), 0.8))
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from fgslam.errors import FgslamError
 from fgslam.inputs import truth_of
 from fgslam.runner import RunnerError, run_backend
 from reloc.backend import Backend, LandmarkMap, PoseEstimate
+from reloc.craters import CraterObservations
 from reloc.errors import RelocError
 from reloc.kinds import LandmarkKind, registered
 from reloc.measurements import GlobalFix, ImuSample, RockObservations
@@ -57,7 +58,7 @@ def _obs(cls, t: float):
 
 @pytest.fixture(scope="module")
 def stream():
-    return make_stream(seed=21, duration_s=30.0)
+    return make_stream(seed=21, duration_s=30.0, craters=True)  # rocks and craters, the registered kinds
 
 
 @pytest.fixture(scope="module", params=BACKEND_NAMES)
@@ -147,12 +148,17 @@ def test_the_runner_refuses_unknown_kinds(stream):
 
 def test_landmark_maps_by_kind(ran):
     _, be, res = ran
-    lm = be.landmark_map("rocks")
-    assert lm.kind == "rocks" and len(lm) > 10 and list(res.landmarks) == ["rocks"]
-    n = len(lm)
-    assert lm.xyz_world_m.shape == (n, 3) and lm.cov_world_m2.shape == (n, 3, 3)
-    assert lm.size_m.shape == (n,) and lm.n_obs.shape == (n,) and len(np.unique(lm.ids)) == n
-    assert np.all(np.linalg.eigvalsh(lm.cov_world_m2) > 0)
+    assert list(res.landmarks) == ["rocks", "craters"]
+    for kind, least in (("rocks", 10), ("craters", 3)):
+        lm = be.landmark_map(kind)
+        assert lm.kind == kind and len(lm) >= least, (kind, len(lm))
+        n = len(lm)
+        assert lm.xyz_world_m.shape == (n, 3) and lm.cov_world_m2.shape == (n, 3, 3)
+        assert lm.size_m.shape == (n,) and lm.n_obs.shape == (n,) and len(np.unique(lm.ids)) == n
+        assert np.all(np.linalg.eigvalsh(lm.cov_world_m2) > 0)
+        assert res.landmarks[kind].kind == kind
+    # craters (2-8 m) are mapped as craters, never mixed with the rocks (< 1.5 m)
+    assert np.all(be.landmark_map("craters").size_m > 1.5) and np.all(be.landmark_map("rocks").size_m < 2.0)
     with registered(PEBBLES):  # a registered kind never observed: an empty map of that kind
         empty = be.landmark_map("pebbles")
         assert isinstance(empty, LandmarkMap) and empty.kind == "pebbles" and len(empty) == 0
@@ -173,7 +179,14 @@ def test_the_resolved_config_round_trips(ran, stream):
     saved = yaml.safe_load(yaml.safe_dump(backend_config_dict(be), sort_keys=False))
     again = make_backend(name, stream.initial, saved)
     assert backend_config_dict(again) == saved
-    assert type(again.config) is type(be.config) and again.config == be.config
+    assert type(again.config) is type(be.config)
+    # the saved config names every registered kind's resolved settings (craters' defaults), the
+    # original only its overrides: the two resolve alike
+    if hasattr(be.config, "kinds"):
+        assert dataclasses.replace(again.config, kinds={}) == dataclasses.replace(be.config, kinds={})
+        assert set(again.config.kinds) == {k for k in ("craters",) if k in saved["kinds"]} | set(be.config.kinds)
+    else:
+        assert again.config == be.config
 
 
 @pytest.mark.parametrize("name", BACKEND_NAMES)
@@ -192,11 +205,11 @@ def test_the_runner_consumes_the_stream_lazily(stream, name):
             self.inner, self.name, self.config, self.calls = inner, inner.name, inner.config, []
 
         def predict(self, step):
-            self.calls.append(("step", step.t1, pulled["n"]))
+            self.calls.append((ImuSample, step.t1, pulled["n"]))
             return self.inner.predict(step)
 
         def observe(self, obs):
-            self.calls.append(("obs", obs.t, pulled["n"]))
+            self.calls.append((type(obs), obs.t, pulled["n"]))
             return self.inner.observe(obs)
 
         def apply_fix(self, fix):
@@ -218,8 +231,9 @@ def test_the_runner_consumes_the_stream_lazily(stream, name):
     res = run_backend(be, gen())
     by_t = {}
     for i, m in enumerate(stream.measurements):
-        if isinstance(m, (ImuSample, RockObservations)):
-            by_t.setdefault((type(m) is RockObservations, m.t), i)
+        if isinstance(m, (ImuSample, RockObservations, CraterObservations)):
+            by_t.setdefault((type(m), m.t), i)
     for kind, t, n in be.calls:  # the measurement that triggered the call was the last one pulled
-        assert n == by_t[(kind == "obs", t)] + 1
+        assert n == by_t[(kind, t)] + 1
+    assert any(kind is CraterObservations for kind, _, _ in be.calls)
     assert pulled["n"] == len(stream.measurements) and len(res.online) > 0

@@ -198,10 +198,10 @@ def test_kind_settings_are_resolved_overridden_and_checked(world, cairns):
     assert ekf._kinds.named("cairns").cfg.gate_chi2 == 5.0
     with pytest.raises(ConfigError, match="no_such"):
         make_backend("ekf", inputs.initial, {"kinds": {"cairns": {"no_such": 1}}}).observe(cairn)
-    with pytest.raises(EkfInputError, match="'craters'"):
-        make_backend("ekf", inputs.initial, {"kinds": {"craters": {}}})
-    with pytest.raises(SmootherError, match="'craters'"):
-        make_backend("isam2", inputs.initial, {"kinds": {"craters": {}}})
+    with pytest.raises(EkfInputError, match="'lava_tubes'"):
+        make_backend("ekf", inputs.initial, {"kinds": {"lava_tubes": {}}})
+    with pytest.raises(SmootherError, match="'lava_tubes'"):
+        make_backend("isam2", inputs.initial, {"kinds": {"lava_tubes": {}}})
 
 
 def test_a_sim_directory_with_a_cairn_catalog_compares_and_records(tmp_path, cairns):

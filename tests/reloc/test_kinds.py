@@ -91,10 +91,10 @@ def test_the_bag_reader_refuses_unknown_kinds(tmp_path):
     from fgslam.io.bag_reader import read_bag
     from reloc.bag_spec import TopicNames
 
-    with pytest.raises(BagError, match="no landmark kind 'craters' is registered"):
-        read_bag(tmp_path / "nothing", kinds=["craters"])
-    with pytest.raises(BagError, match="no landmark kind 'craters' is registered"):
-        read_bag(tmp_path / "nothing", topics=TopicNames(kinds={"craters": "/craters"}))
+    with pytest.raises(BagError, match="no landmark kind 'lava_tubes' is registered"):
+        read_bag(tmp_path / "nothing", kinds=["lava_tubes"])
+    with pytest.raises(BagError, match="no landmark kind 'lava_tubes' is registered"):
+        read_bag(tmp_path / "nothing", topics=TopicNames(kinds={"lava_tubes": "/lava_tubes"}))
 
 
 def test_the_ekf_replay_refuses_an_unknown_history_entry():

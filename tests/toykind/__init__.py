@@ -18,7 +18,7 @@ from __future__ import annotations
 from reloc.kinds import LandmarkKind
 
 CAIRNS = LandmarkKind(
-    name="cairns", measurement="tests.toykind.measurement:CairnObservations", rank=5, symbol="k",
+    name="cairns", measurement="tests.toykind.measurement:CairnObservations", rank=6, symbol="k",
     bag="tests.toykind.bag:CAIRN_CODEC", ekf="tests.toykind.ekf_update:CairnUpdate",
     smoother="tests.toykind.smoother_layer:CairnLandmarks", relocalizer="tests.toykind.relocalizer:CairnRelocalizer",
     catalog="tests.toykind.relocalizer:CAIRN_CATALOG_FILE", rerun="tests.toykind.rerun_layer:CairnLogger",

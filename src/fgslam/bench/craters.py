@@ -1,0 +1,181 @@
+"""Craters in the loop, measured on ``fgslam sim`` directories of the kilometre presets.
+
+For each directory, passes of one back-end (iSAM2 by default) over the same bag, with the
+directory's ``backend.yaml`` calibration settings:
+
+- ``no fixes``: rocks and craters mapped, no relocalization (the drift);
+- ``rocks alone``: crater frames left out (``kinds.craters.use`` False), rock fixes;
+- ``craters alone``: rocks and craters mapped, fixes from the crater relocalizer only;
+- ``rocks + craters``: both mapped, fixes from both relocalizers.
+
+Per pass: the ATE (RMSE, m) and the fixes. For every crater-relocalizer attempt the bench also
+counts the *catalogued craters mapped*: crater landmarks that, moved into the true frame by the
+difference between the estimate and the truth at the attempt, lie within ``mapped_gate_m`` of a
+catalog crater of a diameter within ratio 1.5 (the map itself is never corrected). An attempt
+with at least ``min_catalogued`` of them *should* relocalize; it succeeds when it gives a fix
+within ``wrong_fix_m`` of the truth. A fix farther than that (any attempt) is a wrong fix.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fgslam.metrics import fix_errors, interpolate_truth
+
+PASSES: dict[str, tuple[bool, tuple[str, ...]]] = {  # name -> (craters mapped, relocalizers)
+    "no fixes": (True, ()),
+    "rocks alone": (False, ("rocks",)),
+    "craters alone": (True, ("craters",)),
+    "rocks + craters": (True, ("rocks", "craters")),
+}
+
+
+@dataclass(frozen=True)
+class CraterBenchConfig:
+    backend: str = "isam2"
+    passes: tuple[str, ...] = tuple(PASSES)
+    wrong_fix_m: float = 1.5  # a fix this far from the truth is wrong (craters are metres apart)
+    mapped_gate_m: float = 1.5
+    min_catalogued: int = 6
+    duration_s: float | None = None  # the stretch: the first this many seconds of each bag (None: all)
+
+
+class _CountingRelocalizer:
+    """A relocalizer that also counts, at each attempt, the catalogued craters mapped (module doc)."""
+
+    def __init__(self, inner, catalog, gt, cfg: CraterBenchConfig) -> None:
+        self.inner, self.catalog, self.gt, self.cfg = inner, catalog, gt, cfg
+        self.kinds, self.period_s, self.build_time_s = inner.kinds, inner.period_s, inner.build_time_s
+        self.config = inner.config
+        self.records: list[tuple[float, int, object]] = []  # (t, catalogued mapped, attempt)
+
+    def wants(self, est) -> bool:
+        return self.inner.wants(est)
+
+    def catalogued(self, lmap, est) -> int:
+        if len(lmap) == 0:
+            return 0
+        p_gt, yaw_gt, _ = interpolate_truth(self.gt, np.array([est.t]))
+        dyaw = float(yaw_gt[0] - est.yaw_rad)
+        c, s = np.cos(dyaw), np.sin(dyaw)
+        xy = (lmap.xyz_world_m[:, :2] - est.position_m[:2]) @ np.array([[c, s], [-s, c]]) + p_gt[0, :2]
+        d = np.linalg.norm(xy[:, None, :] - self.catalog.xy_m[None], axis=2)
+        ratio = np.maximum(lmap.size_m[:, None], self.catalog.size_m[None]) / np.minimum(lmap.size_m[:, None],
+                                                                                           self.catalog.size_m[None])
+        near = self.inner.config.max_radius_m >= np.linalg.norm(lmap.xyz_world_m[:, :2] - est.position_m[:2], axis=1)
+        ok = np.any((d <= self.cfg.mapped_gate_m) & (ratio <= 1.5), axis=1) & near & (lmap.n_obs >= self.inner.config.min_obs)
+        return int(ok.sum())
+
+    def attempt(self, maps, est):
+        n = self.catalogued(maps["craters"], est)
+        att = self.inner.attempt(maps, est)
+        self.records.append((est.t, n, att))
+        return att
+
+
+def _overrides(directory: Path, backend: str, craters_used: bool) -> dict:
+    import yaml
+
+    f = directory / "backend.yaml"
+    over = dict((yaml.safe_load(f.read_text()) or {}).get("backend_overrides", {}).get(backend, {}) if f.exists() else {})
+    if not craters_used:
+        kinds = dict(over.get("kinds", {}))
+        kinds["craters"] = {**dict(kinds.get("craters", {})), "use": False}
+        over["kinds"] = kinds
+    return over
+
+
+def _stretch(measurements, duration_s: float | None):
+    """The measurements of the first ``duration_s`` seconds (all of them for None), lazily."""
+    if duration_s is None:
+        yield from measurements
+        return
+    t_end = None
+    for m in measurements:
+        if t_end is None:
+            t_end = m.t + duration_s
+        if m.t > t_end:
+            return
+        yield m
+
+
+def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[[str], None] | None = None) -> dict:
+    """Every pass of ``cfg`` on the ``fgslam sim`` directory (see module doc): a JSON-ready dict."""
+    from fgslam.backends.registry import make_backend
+    from fgslam.fix_sources import NoFixes, OnlineFixes, relocalizers_for
+    from fgslam.inputs import load_sim_dir, truth_of
+    from fgslam.metrics import ate
+    from fgslam.runner import run_backend
+
+    directory = Path(directory)
+    inputs = load_sim_dir(directory)
+    gt = truth_of(inputs)
+    out: dict = {"directory": str(directory), "duration_s": cfg.duration_s, "catalog_craters": len(inputs.catalogs.get("craters", ())),
+                 "catalog_rocks": len(inputs.catalogs["rocks"]), "passes": {}}
+    for name in cfg.passes:
+        craters_used, relocs = PASSES[name]
+        if progress is not None:
+            progress(f"{directory.name}: {name}")
+        producers = relocalizers_for({k: inputs.catalogs[k] for k in relocs if k in inputs.catalogs})
+        counted = None
+        for i, r in enumerate(producers):
+            if r.kinds == ("craters",):
+                counted = producers[i] = _CountingRelocalizer(r, inputs.catalogs["craters"], gt, cfg)
+        be = make_backend(cfg.backend, inputs.initial, _overrides(directory, cfg.backend, craters_used))
+        res = run_backend(be, _stretch(inputs.measurements, cfg.duration_s),
+                          OnlineFixes(producers) if producers else NoFixes())
+        row: dict = {"ate_rmse_m": ate(res.final, gt).rmse, "wall_s": res.wall_s,
+                     "landmarks": {k: len(m) for k, m in res.landmarks.items()}}
+        accepted = {(o.fix.t_meas, o.fix.t_recv) for o in res.outcomes if o.accepted}
+        by_source: dict = {}
+        for att in res.attempts:
+            b = by_source.setdefault(att.source, {"attempts": 0, "fixes": 0, "accepted": 0, "wrong": 0, "errors_m": []})
+            b["attempts"] += 1
+            if att.fix is not None:
+                err = float(fix_errors(np.array([att.fix.xyyaw]), np.array([att.fix.t_meas]), gt)[0][0])
+                b["fixes"] += 1
+                b["accepted"] += int((att.fix.t_meas, att.fix.t_recv) in accepted)
+                b["wrong"] += int(err > cfg.wrong_fix_m)
+                b["errors_m"].append(err)
+        for b in by_source.values():
+            e = b.pop("errors_m")
+            b["median_error_m"] = float(np.median(e)) if e else None
+        row["fixes"] = by_source
+        if counted is not None:
+            should = [(t, n, a) for t, n, a in counted.records if n >= cfg.min_catalogued]
+            ok = 0
+            for _, _, a in should:
+                if a.fix is not None:
+                    err = float(fix_errors(np.array([a.fix.xyyaw]), np.array([a.fix.t_meas]), gt)[0][0])
+                    ok += int(err <= cfg.wrong_fix_m)
+            row["crater_reloc"] = {
+                "attempts": len(counted.records), "with_min_catalogued": len(should), "succeeded": ok,
+                "success_rate": ok / len(should) if should else None,
+                "median_catalogued_mapped": float(np.median([n for _, n, _ in counted.records])) if counted.records else 0.0,
+            }
+        out["passes"][name] = row
+    return out
+
+
+def summary_rows(results: list[dict]) -> tuple[list[str], list[list[str]]]:
+    """One table row per (directory, pass)."""
+    cols = ["directory", "pass", "ATE m", "fixes (rocks)", "wrong (rocks)", "fixes (craters)", "wrong (craters)",
+            "crater attempts >= N catalogued", "success", "wall s"]
+    rows = []
+    for r in results:
+        for name, p in r["passes"].items():
+            fr, fc = p["fixes"].get("rocks", {}), p["fixes"].get("craters", {})
+            cr = p.get("crater_reloc")
+            rows.append([Path(r["directory"]).name, name, f"{p['ate_rmse_m']:.3f}", str(fr.get("fixes", "-")),
+                         str(fr.get("wrong", "-")), str(fc.get("fixes", "-")), str(fc.get("wrong", "-")),
+                         f"{cr['with_min_catalogued']}/{cr['attempts']}" if cr else "-",
+                         "-" if not cr or cr["success_rate"] is None else f"{cr['succeeded']} ({100 * cr['success_rate']:.1f} %)",
+                         f"{p['wall_s']:.0f}"])
+    return cols, rows
+
+
+__all__ = ["PASSES", "CraterBenchConfig", "bench_directory", "summary_rows"]
