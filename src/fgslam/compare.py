@@ -20,6 +20,7 @@ from fgslam import metrics as M
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
 from fgslam.inputs import RunInputs, truth_of
+from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for, check_window, stream_span_s
 from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
@@ -49,9 +50,13 @@ class CompareConfig:
     backend_overrides: dict = field(default_factory=dict)  # name -> config overrides
     rpe_delta_m: Positive = 10.0
     workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
+    long_traverse: LongTraverseConfig = field(default_factory=LongTraverseConfig)  # bounded back-ends
 
     def __post_init__(self) -> None:
         from fgslam.backends.registry import BACKEND_NAMES, backend_config
+        from fgslam.smoother.config import FixConfig
+
+        check_window(self.long_traverse, self.relocalizer.delay_s, FixConfig().window_margin_s)
 
         unknown = [b for b in (*self.backends, self.reference_backend) if b not in BACKEND_NAMES]
         if unknown:
@@ -104,7 +109,11 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         "runtime": {
             "wall_s": res.wall_s, "backend_s": res.backend_s, "match_s": res.match_s,
             "duration_s": res.duration_s, "real_time_factor": M.real_time_factor(res.duration_s, res.wall_s),
+            "frame_latency": res.extra.get("frame_latency", {}),
+            # the per-frame update: the EKF's landmark update; iSAM2's keyframe or fix update
+            "update_p99_ms": res.stats.extra.get("latency_p99_ms", res.extra.get("frame_latency", {}).get("p99_ms")),
         },
+        "memory": res.extra.get("memory", []),
         "n_landmarks": res.n_landmarks,
         "landmarks_by_kind": {k: len(m) for k, m in res.landmarks.items()},
     }
@@ -118,6 +127,8 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     ).to_dict()
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
+    out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})
+    out["n_fixes_older_than_window"] = int(res.stats.extra.get("n_fixes_older_than_window", 0))
     if res.stats.extra.get("calibration"):  # the back-end's estimated stereo calibration
         out["calibration"] = res.stats.extra["calibration"]
     if gt is None:
@@ -176,13 +187,16 @@ def compare_world(
 
     relocs = relocalizers if relocalizers is not None else relocalizer_set(inputs, cfg)
     ref_key = run_key(cfg.reference_backend, True)
+    span = gt.t[-1] - gt.t[0] if gt is not None and len(gt) else stream_span_s(inputs.measurements)
+    overrides = {name: backend_overrides_for(name, cfg.backend_overrides.get(name), span, cfg.long_traverse)
+                 for name in cfg.backends}
     passes = [Pass(DR_KEY, "dr", DR_OVERRIDES, "none", "dead reckoning")]
     for name in cfg.backends:
         for with_reloc in (False, True):
             key = run_key(name, with_reloc)
             mode = "online" if key == ref_key else ("replay" if with_reloc else "none")
             label = run_label(key) + (" (reference)" if mode == "online" else "")
-            passes.append(Pass(key, name, cfg.backend_overrides.get(name), mode, label))
+            passes.append(Pass(key, name, overrides[name], mode, label))
     runs = run_passes(inputs, passes, cfg.runner, relocs, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
     dr = runs.pop(DR_KEY)
     attempts = runs[ref_key].attempts
@@ -200,6 +214,8 @@ def compare_world(
         "real_time_factor": M.real_time_factor(duration, wall),
         "matcher_build_s": sum(r.build_time_s for r in relocs),
         "reference_backend": cfg.reference_backend,
+        "long_traverse": bool(span > cfg.long_traverse.min_duration_s),
+        "backend_overrides": overrides,
         "runs": met,
     }
     if gt is not None:
