@@ -3,14 +3,16 @@
 
 On a yard (10-25 min) the full iSAM2 history is affordable and loop closures are worth keeping;
 on a kilometre traverse that never comes back the full graph only grows (cost and memory), so
-the smoother runs fixed-lag with a window of ``isam2_fixed_lag_s``. The window must be longer
+the smoother runs fixed-lag with a window of ``isam2_fixed_lag_s``, and the EKF marginalises the
+landmarks it has left behind (``ekf_forget_distance_m``) instead of holding them until its bound
+needs the room. The window must be longer
 than the worst fix latency, so that no fix is lost to it: a fix is placed on the keyframe at its
 ``t_meas``, which has to be still inside the window (less its margin) when the fix arrives at
 ``t_recv``. A fix that is older all the same (a measured matching time far above the configured
 delay) is refused with its reason and counted (``n_fixes_older_than_window`` in the smoother's
 stats); the smoother stays usable.
 
-An explicit ``fixed_lag_s`` in the back-end's overrides always wins (0 keeps the full history).
+An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` keeps the full history).
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ class LongTraverseConfig:
 
     min_duration_s: Positive = 1800.0  # streams longer than this (s) are long traverses
     isam2_fixed_lag_s: Positive = 120.0  # iSAM2's fixed-lag window (s) on a long traverse
+    # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
+    # rock that far is behind a rover that does not come back
+    ekf_forget_distance_m: Positive = 40.0
 
 
 def stream_span_s(measurements) -> float:
@@ -58,9 +63,10 @@ def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: floa
 def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
                           cfg: LongTraverseConfig) -> dict | None:
     """The overrides back-end ``name`` runs with on a stream of ``duration_s``: on a long
-    traverse iSAM2 gets ``fixed_lag_s`` unless the overrides set it; otherwise unchanged."""
-    if name != "isam2" or not duration_s > cfg.min_duration_s:
+    traverse iSAM2 gets ``fixed_lag_s`` and the EKF ``forget_distance_m`` unless the overrides
+    set them; otherwise unchanged."""
+    key, value = {"isam2": ("fixed_lag_s", cfg.isam2_fixed_lag_s),
+                  "ekf": ("forget_distance_m", cfg.ekf_forget_distance_m)}.get(name, (None, None))
+    if key is None or not duration_s > cfg.min_duration_s or (overrides and key in overrides):
         return overrides
-    if overrides and "fixed_lag_s" in overrides:
-        return overrides
-    return {**(overrides or {}), "fixed_lag_s": cfg.isam2_fixed_lag_s}
+    return {**(overrides or {}), key: value}

@@ -89,6 +89,7 @@ def run_cmd(
     from fgslam.fix_sources import NoFixes, OnlineFixes
     from fgslam.inputs import check_stream, truth_of
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
+    from fgslam.long_traverse import backend_overrides_for, stream_span_s
     from fgslam.outputs import write_run_outputs
     from fgslam.runner import run_backend
     from reloc.config import config_to_dict
@@ -103,7 +104,9 @@ def run_cmd(
         inputs = load_inputs(directory, bag, catalog, spec)
         runner_cfg = check_stream(inputs, cfg.runner)
         gt = truth_of(inputs)
-        be = make_backend(backend, inputs.initial, cfg.backend_overrides.get(backend))
+        span = gt.t[-1] - gt.t[0] if gt is not None and len(gt) else stream_span_s(inputs.measurements)
+        be = make_backend(backend, inputs.initial,
+                          backend_overrides_for(backend, cfg.backend_overrides.get(backend), span, cfg.long_traverse))
         relocs = [] if no_reloc else relocalizer_set(inputs, cfg)
         fixes = OnlineFixes(relocs) if relocs else NoFixes()
         key = run_key(backend, not no_reloc)
