@@ -20,7 +20,12 @@ from fgslam import metrics as M
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
 from fgslam.inputs import RunInputs, truth_of
-from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for, check_window, stream_span_s
+from fgslam.long_traverse import (
+    LongTraverseConfig,
+    backend_overrides_for,
+    check_window,
+    stream_span_s,
+)
 from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
