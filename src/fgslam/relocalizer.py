@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import fix_from_similarity, rover_weighted_fit, select_local_map
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
@@ -96,6 +97,8 @@ class Relocalizer:
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
+        self.window = (LocalMapWindow(self.config.window_path_m, self.config.window_max_kept)
+                       if self.config.window_path_m > 0 else None)
 
     @property
     def period_s(self) -> float:
@@ -125,6 +128,8 @@ class Relocalizer:
         cfg = self.config
         est_xyyaw = np.array([est.position_m[0], est.position_m[1], est.yaw_rad])
         self._last_xyyaw = est_xyyaw
+        if self.window is not None:  # with the landmarks the back-end dropped on the recent path
+            lmap = self.window.update(lmap, est.position_m)
         idx = select_local_map(lmap, est.position_m, cfg)
         if idx.size < cfg.min_landmarks:
             return FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 from fgslam.errors import FgslamError
-from reloc.config import Ge, Interval, NonNegative, Positive, PositiveInt, checked
+from reloc.config import Ge, Interval, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 from reloc.errors import ConfigError
 
 
@@ -30,6 +30,16 @@ class RelocalizerConfig:
     # ... "largest" first (the orbital catalog holds mostly the larger rocks: on a dense yard the
     # nearest 80 are small rocks in a few metres, few of them catalogued) or "nearest" first
     select: Literal["largest", "nearest"] = "largest"
+    # Sparse ground: with fewer than sparse_below usable landmarks within max_radius_m, the radius
+    # grows to sparse_radius_m (on a traverse that does not come back: the last ~80 m of path),
+    # so the constellation holds enough catalogued rocks to match
+    sparse_below: NonNegativeInt = 40
+    sparse_radius_m: Positive = 80.0
+    # The local map also holds the landmarks the back-end dropped (EKF marginalisation, fixed-lag
+    # retirement) while last seen within window_path_m of estimated path, at most window_max_kept
+    # (fgslam.local_window); window_path_m 0: the back-end's map only
+    window_path_m: NonNegative = 150.0
+    window_max_kept: PositiveInt = 2000
     # an attempt is skipped while the rover has moved less than min_travel_m and turned less than
     # min_turn_deg since the last one (standing still, its map and pose say nothing new: my2021,
     # 687 -> 554 attempts, the same ATE, 44 -> 48x real time); both 0: never skipped
