@@ -131,6 +131,9 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
+    first = next((o.fix for o in res.outcomes if o.accepted), None)  # time to first fix: measured, received
+    out["fixes"]["first_fix_s"] = None if first is None else [first.t_meas - res.t_start, first.t_recv - res.t_start]
+    out["reanchors"] = res.stats.extra.get("reanchors", [])
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
     out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})
     out["n_fixes_older_than_window"] = int(res.stats.extra.get("n_fixes_older_than_window", 0))

@@ -136,11 +136,11 @@ class Relocalizer:
         local_xy = lmap.xyz_world_m[idx, :2]
         t0 = time.perf_counter()
         prior = None
-        if cfg.prior_sigmas is not None:
+        sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
+        if cfg.prior_sigmas is not None and sigma_pos <= cfg.lost_sigma_m:  # lost: the whole catalog
             from reloc.matcher import MatchPrior
             from reloc.procrustes import Similarity2D
 
-            sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
             guess = Similarity2D(0.0, np.zeros(2), 1.0) if cfg.track else None
             prior = MatchPrior(local_xy.mean(axis=0), cfg.prior_min_radius_m + cfg.prior_sigmas * sigma_pos, guess)
         rows = None  # catalog rows of the matcher's catalog (None: the whole catalog)

@@ -73,6 +73,9 @@ class RelocalizerConfig:
     correlation_window_s: Positive = 60.0
     prior_sigmas: Positive | None = 6.0
     prior_min_radius_m: NonNegative = 3.0
+    # an estimate whose largest planar sigma exceeds this is lost: its map is matched against the
+    # whole catalog, with no prior (the back-end re-anchors on the fix, fgslam.backends.reanchor)
+    lost_sigma_m: Positive = 5.0
     # Tracking: with a prior, first verify the pose the estimate gives (the map as it is, in the
     # estimate's world frame) and search only if that does not convince (reloc.matcher module doc).
     # Off by default: it saves matching time on dense catalogs (my2020 reference pass: matching
