@@ -21,7 +21,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from reloc.backend import Backend, BackendStats, FixOutcome, PoseEstimate, Trajectory, known_start_cov
+from reloc.backend import (
+    Backend,
+    BackendStats,
+    FixOutcome,
+    PoseEstimate,
+    Trajectory,
+    known_start_cov,
+)
 from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix
 
