@@ -55,3 +55,15 @@ def test_latency_histogram_percentiles_within_a_bin():
         assert exact <= h.percentile_s(q) <= exact * 1.13
     assert h.to_dict()["n"] == 5000 and h.to_dict()["max_ms"] == pytest.approx(1e3 * x.max())
     assert np.isnan(LatencyHistogram().percentile_s(99))
+
+
+def test_corrupted_fixes_are_the_asked_share_moved_5_to_50_m():
+    from fgslam.bench.wrong_fixes import corrupt_fixes
+    from reloc.measurements import GlobalFix
+
+    fixes = [GlobalFix(float(t), float(t) + 2.0, 1.0 * t, 0.0, 0.0, np.eye(3) * 0.01) for t in range(50)]
+    out, wrong = corrupt_fixes(fixes, 0.2, seed=3)
+    assert wrong.sum() == 10
+    d = np.array([np.hypot(a.x_m - b.x_m, a.y_m - b.y_m) for a, b in zip(out, fixes)])
+    assert np.all(d[~wrong] == 0.0) and np.all((d[wrong] >= 5.0) & (d[wrong] <= 50.0))
+    assert np.array_equal(corrupt_fixes(fixes, 0.2, seed=3)[1], wrong)
