@@ -99,6 +99,10 @@ class EkfConfig:
     # pass from 28 s to 11 s and the ATE from 0.057 to 0.008 m (100: 0.031, 200: 0.042); my2021,
     # my2022 and cnes kept their ATE (0.018 / 0.028 / 0.030 m)
     max_landmarks: PositiveInt = 150
+    # landmarks farther than this (m, planar) from the rover are out of reach and marginalised, so
+    # a sparse world's state holds only what the camera can see again; 0 keeps them until the
+    # bound above needs the room (long traverses get 40 m, fgslam.long_traverse)
+    forget_distance_m: NonNegative = 0.0
     history_s: Positive = 30.0  # late fixes older than this (vs the newest input) are rejected
     checkpoint_period_s: Positive = 2.0  # state snapshots for roll-back (each a copy of P), this far apart
     future_tolerance_s: NonNegative = 0.1  # a fix up to this far ahead of the filter is applied now

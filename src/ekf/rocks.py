@@ -72,7 +72,7 @@ class RockUpdate:
         self.kind = kind.name
         self.code = kind_code(kind.name)
         self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
-                       "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0,
+                       "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0, "n_forgotten": 0,
                        "n_budget_skipped": 0, "n_budget_new_skipped": 0, "n_lone_pairs_skipped": 0}
 
     def _bump(self, count: bool, **kw: int) -> None:
@@ -159,10 +159,13 @@ class RockUpdate:
         stale = s.book.stale(obs.t)
         protect = stale.copy()
         protect[rows] = True
-        excess = s.n_landmarks - int(stale.sum()) + new.size - cfg.max_landmarks
         dist = np.linalg.norm(s.l_world - s.p_world, axis=1)
-        evict = s.book.evictions(excess, dist, protect)
-        s.keep_landmarks(~(stale | evict))
+        far = np.zeros_like(stale)
+        if cfg.forget_distance_m > 0:  # out of reach: marginalised whatever the count
+            far = (np.linalg.norm(s.l_world[:, :2] - s.p_world[:2], axis=1) > cfg.forget_distance_m) & ~protect
+        excess = s.n_landmarks - int((stale | far).sum()) + new.size - cfg.max_landmarks
+        evict = s.book.evictions(excess, dist, protect | far)
+        s.keep_landmarks(~(stale | far | evict))
         room = max(cfg.max_landmarks - s.n_landmarks, 0)
         n_new = min(new.size, room)  # what the bound on the state admits ...
         if cfg.budget.max_new > 0:  # ... and the budget
@@ -177,7 +180,7 @@ class RockUpdate:
             s.append_landmarks(l_new, G_pose, cov_w)
             s.book.add(obs.t, size[new], self.code)
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
-                   n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(),
+                   n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(), n_forgotten=far.sum(),
                    n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size,
                    n_lone_pairs_skipped=n_lone)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))

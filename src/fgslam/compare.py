@@ -22,6 +22,12 @@ from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
 from fgslam.inputs import RunInputs, truth_of
 from fgslam.io.image_rocks import ImageInputConfig
+from fgslam.long_traverse import (
+    LongTraverseConfig,
+    backend_overrides_for,
+    check_window,
+    stream_span_s,
+)
 from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
@@ -65,6 +71,7 @@ class CompareConfig:
     workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
     topics: dict = field(default_factory=dict)  # input role -> bag topic (reloc.bag_spec.topic_names)
     images: ImageInputConfig = field(default_factory=ImageInputConfig)  # a bag's stereo images -> rocks
+    long_traverse: LongTraverseConfig = field(default_factory=LongTraverseConfig)  # bounded back-ends
 
     def __post_init__(self) -> None:
         from fgslam.backends.registry import BACKEND_NAMES, backend_config
@@ -77,6 +84,9 @@ class CompareConfig:
             raise CompareError(f"unknown back-end(s) {unknown} in backends/reference_backend; choose from {list(BACKEND_NAMES)}")
         for name, overrides in self.backend_overrides.items():
             backend_config(name, overrides, where=f"backend_overrides.{name}.")
+        if "isam2" in self.backends:  # the window must hold the latest fix (fgslam.long_traverse)
+            smoother = backend_config("isam2", self.backend_overrides.get("isam2"), where="backend_overrides.isam2.")
+            check_window(self.long_traverse, self.relocalizer.delay_s, smoother.fixes.window_margin_s)
 
 
 DR_OVERRIDES = {"build_map": False}  # the odometry-only pass needs no map
@@ -123,7 +133,11 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         "runtime": {
             "wall_s": res.wall_s, "backend_s": res.backend_s, "match_s": res.match_s,
             "duration_s": res.duration_s, "real_time_factor": M.real_time_factor(res.duration_s, res.wall_s),
+            "frame_latency": res.extra.get("frame_latency", {}),
+            # the per-frame update: the EKF's landmark update; iSAM2's keyframe or fix update
+            "update_p99_ms": res.stats.extra.get("latency_p99_ms", res.extra.get("frame_latency", {}).get("p99_ms")),
         },
+        "memory": res.extra.get("memory", []),
         "n_landmarks": res.n_landmarks,
         "landmarks_by_kind": {k: len(m) for k, m in res.landmarks.items()},
     }
@@ -136,7 +150,12 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
+    first = next((o.fix for o in res.outcomes if o.accepted), None)  # time to first fix: measured, received
+    out["fixes"]["first_fix_s"] = None if first is None else [first.t_meas - res.t_start, first.t_recv - res.t_start]
+    out["reanchors"] = res.stats.extra.get("reanchors", [])
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
+    out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})
+    out["n_fixes_older_than_window"] = int(res.stats.extra.get("n_fixes_older_than_window", 0))
     if res.stats.extra.get("calibration"):  # the back-end's estimated stereo calibration
         out["calibration"] = res.stats.extra["calibration"]
     if gt is None:
@@ -195,13 +214,16 @@ def compare_world(
 
     relocs = relocalizers if relocalizers is not None else relocalizer_set(inputs, cfg)
     ref_key = run_key(cfg.reference_backend, True)
+    span = gt.t[-1] - gt.t[0] if gt is not None and len(gt) else stream_span_s(inputs.measurements)
+    overrides = {name: backend_overrides_for(name, cfg.backend_overrides.get(name), span, cfg.long_traverse)
+                 for name in cfg.backends}
     passes = [Pass(DR_KEY, "dr", DR_OVERRIDES, "none", "dead reckoning")]
     for name in cfg.backends:
         for with_reloc in (False, True):
             key = run_key(name, with_reloc)
             mode = "online" if key == ref_key else ("replay" if with_reloc else "none")
             label = run_label(key) + (" (reference)" if mode == "online" else "")
-            passes.append(Pass(key, name, cfg.backend_overrides.get(name), mode, label))
+            passes.append(Pass(key, name, overrides[name], mode, label))
     runs = run_passes(inputs, passes, cfg.runner, relocs, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
     dr = runs.pop(DR_KEY)
     attempts = runs[ref_key].attempts
@@ -219,6 +241,8 @@ def compare_world(
         "real_time_factor": M.real_time_factor(duration, wall),
         "matcher_build_s": sum(r.build_time_s for r in relocs),
         "reference_backend": cfg.reference_backend,
+        "long_traverse": bool(span > cfg.long_traverse.min_duration_s),
+        "backend_overrides": overrides,
         "runs": met,
     }
     if gt is not None:

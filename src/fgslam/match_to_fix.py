@@ -18,12 +18,16 @@ from reloc.measurements import GlobalFix
 
 def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig) -> np.ndarray:
     """Indices of the landmarks used for matching: n_obs >= min_obs within ``max_radius_m`` of the
-    rover, at most ``max_landmarks`` of them, the largest (or the nearest, ``cfg.select``) first."""
+    rover (``sparse_radius_m`` where fewer than ``sparse_below`` are that near), at most
+    ``max_landmarks`` of them, the largest (or the nearest, ``cfg.select``) first."""
     if len(lmap) == 0:
         return np.zeros(0, dtype=int)
     ok = np.flatnonzero(lmap.n_obs >= cfg.min_obs)
     d = np.linalg.norm(lmap.xyz_world_m[ok, :2] - np.asarray(xy_rover)[:2], axis=1)
-    ok, d = ok[d <= cfg.max_radius_m], d[d <= cfg.max_radius_m]
+    radius = cfg.max_radius_m
+    if np.count_nonzero(d <= radius) < cfg.sparse_below:  # sparse ground: a wider map
+        radius = max(radius, cfg.sparse_radius_m)
+    ok, d = ok[d <= radius], d[d <= radius]
     if cfg.select == "largest":
         order = np.lexsort((d, -lmap.size_m[ok]))  # larger first, nearer among equals
     else:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import fix_from_similarity, rover_weighted_fit, select_local_map
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
@@ -98,6 +99,8 @@ class Relocalizer:
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
+        self.window = (LocalMapWindow(self.config.window_path_m, self.config.window_max_kept)
+                       if self.config.window_path_m > 0 else None)
 
     @property
     def period_s(self) -> float:
@@ -129,17 +132,19 @@ class Relocalizer:
         self._last_xyyaw = est_xyyaw
         if self._stale(lmap):
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
+        if self.window is not None:  # with the landmarks the back-end dropped on the recent path
+            lmap = self.window.update(lmap, est.position_m)
         idx = select_local_map(lmap, est.position_m, cfg)
         if idx.size < cfg.min_landmarks:
             return FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
         local_xy = lmap.xyz_world_m[idx, :2]
         t0 = time.perf_counter()
         prior = None
-        if cfg.prior_sigmas is not None:
+        sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
+        if cfg.prior_sigmas is not None and sigma_pos <= cfg.lost_sigma_m:  # lost: the whole catalog
             from reloc.matcher import MatchPrior
             from reloc.procrustes import Similarity2D
 
-            sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
             guess = Similarity2D(0.0, np.zeros(2), 1.0) if cfg.track else None
             prior = MatchPrior(local_xy.mean(axis=0), cfg.prior_min_radius_m + cfg.prior_sigmas * sigma_pos, guess)
         rows = None  # catalog rows of the matcher's catalog (None: the whole catalog)

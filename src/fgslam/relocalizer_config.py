@@ -30,6 +30,16 @@ class RelocalizerConfig:
     # ... "largest" first (the orbital catalog holds mostly the larger rocks: on a dense yard the
     # nearest 80 are small rocks in a few metres, few of them catalogued) or "nearest" first
     select: Literal["largest", "nearest"] = "largest"
+    # Sparse ground: with fewer than sparse_below usable landmarks within max_radius_m, the radius
+    # grows to sparse_radius_m (on a traverse that does not come back: the last ~80 m of path),
+    # so the constellation holds enough catalogued rocks to match
+    sparse_below: NonNegativeInt = 40
+    sparse_radius_m: Positive = 80.0
+    # The local map also holds the landmarks the back-end dropped (EKF marginalisation, fixed-lag
+    # retirement) while last seen within window_path_m of estimated path, at most window_max_kept
+    # (fgslam.local_window); window_path_m 0: the back-end's map only
+    window_path_m: NonNegative = 150.0
+    window_max_kept: PositiveInt = 2000
     # an attempt is skipped while the rover has moved less than min_travel_m and turned less than
     # min_turn_deg since the last one (standing still, its map and pose say nothing new: my2021,
     # 687 -> 554 attempts, the same ATE, 44 -> 48x real time); both 0: never skipped
@@ -67,6 +77,9 @@ class RelocalizerConfig:
     correlation_window_s: Positive = 60.0
     prior_sigmas: Positive | None = 6.0
     prior_min_radius_m: NonNegative = 3.0
+    # an estimate whose largest planar sigma exceeds this is lost: its map is matched against the
+    # whole catalog, with no prior (the back-end re-anchors on the fix, fgslam.backends.reanchor)
+    lost_sigma_m: Positive = 5.0
     # Tracking: with a prior, first verify the pose the estimate gives (the map as it is, in the
     # estimate's world frame) and search only if that does not convince (reloc.matcher module doc).
     # Off by default: it saves matching time on dense catalogs (my2020 reference pass: matching

@@ -73,6 +73,8 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
         row("Fix attempts", lambda s: fx(s)["attempts"], "{:d}")
         row("Fixes", lambda s: fx(s)["fixes"], "{:d}")
         row("Fix rate [Hz]", lambda s: fx(s)["rate_hz"], "{:.3f}")
+        row("Time to first fix (measured / received) [s]",
+            lambda s: "{:.1f} / {:.1f}".format(*s["runs"][ref]["fixes"]["first_fix_s"]), "{}")
         row("Fix position error median [m]", lambda s: fx(s)["position_error_m"]["median"])
         row("Fix position error mean [m]", lambda s: fx(s)["position_error_m"]["mean"])
         row("Fix NEES (x,y,yaw) mean", lambda s: fx(s)["nees_mean"], "{:.2f}")
@@ -89,6 +91,14 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
                 lambda s, k=k, part=part: nees_cell(s["runs"][k]["consistency"][part]), "{}")
     for k in variants:
         row(f"{run_label(k)} wall time [s]", lambda s, k=k: s["runs"][k]["runtime"]["wall_s"], "{:.1f}")
+    for k in variants:
+        row(f"{run_label(k)} update p99 [ms]", lambda s, k=k: s["runs"][k]["runtime"]["update_p99_ms"], "{:.1f}")
+    for k in variants:
+        row(f"{run_label(k)} peak RSS [MB]", lambda s, k=k: (s["runs"][k]["memory"] or [{}])[-1]["peak_rss_mb"], "{:.0f}")
+    for k in variants:
+        if k.endswith("_reloc"):
+            row(f"{run_label(k)} fixes refused by the smoother window",
+                lambda s, k=k: s["runs"][k]["n_fixes_older_than_window"], "{:d}")
     row("Whole comparison wall time [s]", lambda s: s["wall_s"], "{:.1f}")
     row("Whole comparison real-time factor [x]", lambda s: s["real_time_factor"], "{:.1f}")
     return rows

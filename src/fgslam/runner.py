@@ -62,6 +62,7 @@ class RunnerConfig:
     # comparison already runs one pass per core (measured on my2020, iSAM2 over 150 s of stream:
     # 16.0 s of back-end time with OpenBLAS's default threads, 8.2 s with one).
     blas_threads: NonNegativeInt = 1
+    rss_every_m: Positive = 500.0  # resident memory sampled every this many metres of estimated path
 
 
 @dataclass
@@ -111,7 +112,7 @@ class RunRecorder:
     """The online estimate every ``1 / rate_hz`` s of stream time (after an odometry step), the
     ground truth, the stream's span, and progress reports."""
 
-    def __init__(self, rate_hz: float, on_progress: Callable[[float], None] | None) -> None:
+    def __init__(self, rate_hz: float, on_progress: Callable[[float], None] | None, rss_every_m: float = 500.0) -> None:
         self.dt = 1.0 / rate_hz
         self.on_progress = on_progress
         self.t_first = self.t_last = None
@@ -119,6 +120,9 @@ class RunRecorder:
         self.records: list = []
         self.truth: list[GroundTruthPose] = []
         self.n_predict = 0
+        self.rss_every_m = rss_every_m
+        self.distance_m = 0.0  # along the recorded online estimate
+        self.memory: list[dict] = []  # resident memory every rss_every_m metres (and at the end)
 
     def saw(self, t: float) -> None:
         if self.t_first is None:
@@ -128,8 +132,18 @@ class RunRecorder:
     def predicted(self, t: float, backend: Backend) -> None:
         self.n_predict += 1
         if t >= self.next_record:
-            self.records.append(backend.estimate())
+            est = backend.estimate()
+            if self.records:
+                d0 = self.distance_m
+                self.distance_m += float(np.linalg.norm(est.position_m[:2] - self.records[-1].position_m[:2]))
+                if int(self.distance_m // self.rss_every_m) > int(d0 // self.rss_every_m):
+                    self.sample_memory(t)
+            self.records.append(est)
             self.next_record = self.t_first + self.dt * (np.floor((t - self.t_first) / self.dt + 1e-9) + 1)
+
+    def sample_memory(self, t: float) -> None:
+        """Record the process's resident and peak resident memory (MB) at ``t``."""
+        self.memory.append({"distance_m": round(self.distance_m, 1), "t": float(t), **resident_memory_mb()})
 
     def progress(self, t: float) -> None:
         if self.on_progress is not None and self.n_predict % PROGRESS_EVERY == 0:
@@ -140,6 +154,19 @@ class RunRecorder:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
         r = self.records
         return Trajectory(np.array([e.t for e in r]), np.array([e.T_world_base for e in r]), np.array([e.cov for e in r]))
+
+
+def resident_memory_mb() -> dict:
+    """The process's resident memory now and at its peak (MB; Linux /proc, else the peak only)."""
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    try:
+        with open("/proc/self/statm") as f:
+            now = int(f.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:
+        now = float("nan")
+    return {"rss_mb": round(now, 1), "peak_rss_mb": round(peak, 1)}
 
 
 def _landmark_kind(m, t: float) -> str:
@@ -169,7 +196,7 @@ def run_backend(
 def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress) -> RunResult:
     odometry = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
                                  max_speed_age_s=cfg.max_speed_age_s)
-    rec = RunRecorder(cfg.record_rate_hz, on_progress)
+    rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -196,6 +223,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         raise RunnerError("the measurement stream has fewer than two IMU samples: nothing to predict")
     sent = fixes.sent(rec.t_last)
     final = be.trajectory()
+    rec.sample_memory(rec.t_last)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     if on_progress is not None:
         on_progress(rec.t_last)
@@ -205,4 +233,5 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         landmarks={k: be.landmark_map(k) for k in kinds}, stats=be.stats(),
         wall_s=wall, backend_s=be.busy_s, match_s=fixes.match_s, t_start=float(rec.t_first),
         t_end=float(rec.t_last), cpu_s=cpu, backend_cpu_s=be.busy_cpu_s,
+        extra={"frame_latency": be.frame_latency.to_dict(), "memory": rec.memory},
     )

@@ -45,9 +45,12 @@ def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
     assert all(c.is_static for c in by_path[f"{w}/{rerun_log.ENT_CATALOG}/rocks"])
     pose_chunks = by_path[f"{w}/dr_reloc/{rerun_log.ENT_POSE}"]
     assert all(rerun_log.TIMELINE in c.timeline_names for c in pose_chunks)
-    assert sum(c.num_rows for c in pose_chunks) == len(comparison.runs["dr_reloc"].online)
+    on = comparison.runs["dr_reloc"].online
+    n_on = len(rerun_log.path_samples(on.t, on.positions_m))  # one sample per 0.5 m of path
+    assert 10 < n_on < len(on)
+    assert sum(c.num_rows for c in pose_chunks) == n_on
     err_rows = sum(c.num_rows for c in by_path[f"{w}/{rerun_log.ENT_ERR_POS}/dr_reloc"] if not c.is_static)
-    assert err_rows == len(comparison.runs["dr_reloc"].online)
+    assert err_rows == n_on
     # the blueprint is saved with the recording and has views
     bps = reader.blueprints()
     assert len(bps) == 1
@@ -77,3 +80,13 @@ def test_ellipses_are_three_sigma_and_rotated():
     ang = 2 * np.arctan2(q[1, 2], q[1, 3])
     axis = np.array([np.cos(ang), np.sin(ang)]) if big == 0 else np.array([-np.sin(ang), np.cos(ang)])
     assert abs(abs(axis[1]) - 1.0) < 1e-9
+
+
+def test_path_samples_every_half_metre_or_ten_seconds():
+    t = np.arange(0.0, 100.0, 0.1)
+    xy = np.column_stack([0.05 * t, np.zeros_like(t)])  # 0.05 m/s: 0.5 m every 10 s
+    xy[t > 50.0, 0] = 2.5  # standing still after 50 s
+    k = rerun_log.path_samples(t, xy)
+    assert k[0] == 0 and k[-1] == len(t) - 1
+    d = np.diff(t[k])
+    assert np.all(d <= 10.0 + 1e-9) and len(k) <= 12

@@ -79,8 +79,11 @@ def test_relocalizer_config_is_validated():
 def test_select_local_map_keeps_seen_landmarks_near_the_rover():
     xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [50, 0, 0]], float)
     lm = LandmarkMap(np.arange(4), xyz, np.tile(np.eye(3), (4, 1, 1)), np.ones(4), np.array([3, 1, 5, 9]), "rocks")
-    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=2, max_radius_m=20.0))
+    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=2, max_radius_m=20.0, sparse_below=0))
     assert list(idx) == [0, 2]
+    # sparse ground (fewer than sparse_below near the rover): the radius grows to sparse_radius_m
+    idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=2, max_radius_m=20.0, sparse_radius_m=60.0))
+    assert list(idx) == [0, 2, 3]
     idx = select_local_map(lm, np.array([0.0, 0.0]), RelocalizerConfig(min_obs=1, max_landmarks=3))
     assert list(idx) == [0, 1, 2]
 
@@ -204,8 +207,8 @@ def test_select_local_map_prefers_the_largest_rocks_within_the_radius():
     size = np.array([0.1, 0.5, 0.1, 0.4, 1.0])
     lm = LandmarkMap(np.arange(5), xyz, np.tile(np.eye(3), (5, 1, 1)), size, np.full(5, 3), "rocks")
     rover = np.array([0.0, 0.0])
-    assert list(select_local_map(lm, rover, RelocalizerConfig(max_landmarks=3, max_radius_m=20.0))) == [0, 1, 3]
-    near = RelocalizerConfig(max_landmarks=3, max_radius_m=20.0, select="nearest")
+    assert list(select_local_map(lm, rover, RelocalizerConfig(max_landmarks=3, max_radius_m=20.0, sparse_below=0))) == [0, 1, 3]
+    near = RelocalizerConfig(max_landmarks=3, max_radius_m=20.0, select="nearest", sparse_below=0)
     assert list(select_local_map(lm, rover, near)) == [0, 1, 2]
     with pytest.raises(RelocalizerError, match="select"):
         RelocalizerConfig(select="biggest")

@@ -85,14 +85,21 @@ def backend_config(name: str, overrides: dict | None = None, where: str | None =
 
 
 def make_backend(name: str, initial: PoseEstimate, overrides: dict | None = None) -> Backend:
-    """Construct back-end ``name`` at ``initial`` with config ``overrides`` applied to its defaults."""
-    return backend_class(name)(initial, backend_config(name, overrides))
+    """Construct back-end ``name`` at ``initial`` with config ``overrides`` applied to its defaults;
+    from a lost start (position sigma above :data:`fgslam.backends.reanchor.LOST_SIGMA_M`) it
+    re-anchors on its first fix (:class:`fgslam.backends.reanchor.Reanchoring`)."""
+    from fgslam.backends.reanchor import Reanchoring, is_lost
+
+    cls, cfg = backend_class(name), backend_config(name, overrides)
+    if name != "dr" and is_lost(initial):
+        return Reanchoring(lambda start: cls(start, cfg), initial)
+    return cls(initial, cfg)
 
 
 def backend_config_dict(backend: Backend) -> dict:
     """The resolved config of a constructed back-end, as a plain dict (every value, defaults
     included; each landmark kind's settings resolved too)."""
-    return type(backend).resolved_config(backend.config)
+    return type(getattr(backend, "inner", backend)).resolved_config(backend.config)
 
 
 def resolved_config(name: str, overrides: dict | None = None) -> dict:

@@ -115,7 +115,9 @@ class SmootherConfig:
     """All settings of :class:`fgslam.smoother.Isam2Smoother`.
 
     ``fixed_lag_s`` > 0 switches to the fixed-lag smoother (bounded cost, keys older than the lag
-    are marginalized); 0 keeps the full history in one iSAM2.
+    are marginalized; the calibration variable is re-stamped at every keyframe and stays in the
+    window); 0 keeps the full history in one iSAM2. Long traverses get the fixed-lag smoother by
+    default (:mod:`fgslam.long_traverse`).
     """
 
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -136,13 +138,8 @@ class SmootherConfig:
     # window (~1 ms each) instead of its causal covariance (an upper bound)
     snapshot_before_fixes: bool = True  # full mode: copy ISAM2 (~ms) before fix updates and retractions
     # stereo calibration variable C(0) (rotation error, scale) with this prior, on every rock
-    # factor (then a Python factor, ~25 us per linearization instead of the C++ one); full mode only
+    # factor (then a Python factor, ~25 us per linearization instead of the C++ one)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     # settings of the other landmark kinds' smoother layers, by kind name (each layer declares its
     # config class; the rock settings are ``landmarks``), see fgslam.smoother.kinds
     kinds: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.calibration.enabled and self.fixed_lag_s > 0:
-            raise SmootherError("calibration needs the full smoother (fixed_lag_s = 0): the fixed-lag "
-                                "window would marginalise the calibration variable")

@@ -20,6 +20,8 @@ from reloc.measurements import GlobalFix
 
 log = logging.getLogger("fgslam.smoother.isam2_backend")
 
+WINDOW_REASON = "outside"  # first word of the reason of a fix refused by the fixed-lag window
+
 
 class LateFixes:
     """``_apply_fix`` and the retraction of fixes (see module doc)."""
@@ -37,7 +39,8 @@ class LateFixes:
         if self.solver.fixed_lag and (
             not self.solver.alive(X(k)) or self.kfs.t[k] < self.kfs.t[-1] - self.config.fixed_lag_s + cfg.window_margin_s
         ):
-            return FixOutcome(fix, False, f"older than the smoother window ({self.config.fixed_lag_s:.0f} s)")
+            return FixOutcome(fix, False, f"{WINDOW_REASON} the smoother window: t_meas {fix.t_meas:.1f} s is older than "
+                              f"the {self.config.fixed_lag_s:.0f} s window less its {cfg.window_margin_s:.0f} s margin")
         T_rel, C_rel = seg.at(fix.t_meas)
         T_kf = self.solver.pose(X(k))
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0

@@ -22,7 +22,7 @@ from gtsam.symbol_shorthand import C, X
 from fgslam.errors import SmootherError
 from fgslam.smoother.config import SmootherConfig
 from fgslam.smoother.factors import adjoint, cov_gtsam_to_world, cov_world_to_gtsam, inverse
-from fgslam.smoother.fix_updates import LateFixes
+from fgslam.smoother.fix_updates import WINDOW_REASON, LateFixes
 from fgslam.smoother.fixes import FixRecord
 from fgslam.smoother.keyframes import KeyframeStore, keyframe_due
 from fgslam.smoother.kinds import (
@@ -79,6 +79,7 @@ class Isam2Smoother(LateFixes, Backend):
         self.update_cpu_s: list[float] = []  # CPU time of the same (robust to a loaded machine)
         self.n_predict = self.n_failed_updates = 0
         self.n_fix_ok = self.n_fix_rejected = 0
+        self.fix_reject_reasons: dict[str, int] = {}  # rejected fixes by the reason's first word
         self._stamps: dict[int, float] = {}  # fixed-lag key timestamps (s)
         self._buf_graph = gtsam.NonlinearFactorGraph()
         self._buf_values = gtsam.Values()
@@ -134,7 +135,8 @@ class Isam2Smoother(LateFixes, Backend):
         vector (deg, base_link) and range scale, with their marginal sigmas."""
         if not self.calibrated:
             return {}
-        c = np.asarray(self.solver.isam.calculateEstimateVector(C(0)))
+        s = self.solver.ifls if self.solver.fixed_lag else self.solver.isam
+        c = np.asarray(s.calculateEstimateVector(C(0)))
         sig = np.sqrt(np.diag(self.solver.marginal_cov(C(0))))
         return calibration_report(c[:3], 1.0 + float(c[3]), sig[:3], sig[3])
 
@@ -150,6 +152,8 @@ class Isam2Smoother(LateFixes, Backend):
             self.n_fix_ok += 1
         else:
             self.n_fix_rejected += 1
+            key = outcome.reason.split(" ")[0] if outcome.reason else "unknown"
+            self.fix_reject_reasons[key] = self.fix_reject_reasons.get(key, 0) + 1
             log.info("fix at t=%.2f rejected: %s", fix.t_meas, outcome.reason)
         return outcome
 
@@ -217,6 +221,9 @@ class Isam2Smoother(LateFixes, Backend):
                 "factorization": self.solver.factorization.value,
                 **kind_counts,
                 "retracted_fixes": retracted,
+                "fix_reject_reasons": dict(self.fix_reject_reasons),
+                # fixes whose keyframe had left (or was about to leave) the fixed-lag window
+                "n_fixes_older_than_window": self.fix_reject_reasons.get(WINDOW_REASON, 0),
                 "fixed_lag_s": self.config.fixed_lag_s,
                 **({"calibration": self.calibration()} if self.calibrated else {}),
             },
@@ -252,6 +259,8 @@ class Isam2Smoother(LateFixes, Backend):
         full_stamps = dict(stamps)
         for layer in self.kinds.used():
             full_stamps.update(layer.buffered_stamps(t))
+        if self.solver.fixed_lag and self.calibrated:
+            stamps[C(0)] = full_stamps[C(0)] = t  # every rock factor uses it: it never leaves the window
         if self.solver.fixed_lag:
             self._before_marginalization(t, full_stamps)
         try:

@@ -37,6 +37,9 @@ APP_ID = "fgslam"
 # layer heights of the flat map (m)
 Z_IMAGE, Z_CATALOG, Z_LANDMARKS, Z_TRUTH, Z_PATH, Z_FIX = 0.0, 0.02, 0.04, 0.06, 0.08, 0.1
 MAX_IMAGE_PX = 1024
+# downsampling, so a recording grows linearly with the path (< 5 MB per km): time series one
+# sample per RRD_STEP_M of path (and at least every RRD_STEP_S), matched pairs one fix per RRD_MATCH_STEP_M
+RRD_STEP_M, RRD_STEP_S, RRD_MATCH_STEP_M = 0.5, 10.0, 5.0
 
 ENT_ORBITAL = "map/orbital"
 ENT_CATALOG = "map/catalog"
@@ -71,6 +74,22 @@ def landmark_logger(kind: str):
 def _downsample(img: np.ndarray) -> np.ndarray:
     step = int(np.ceil(max(img.shape[:2]) / MAX_IMAGE_PX))
     return np.ascontiguousarray(img[::step, ::step]) if step > 1 else img
+
+
+def path_samples(t: np.ndarray, xy: np.ndarray, step_m: float = RRD_STEP_M, step_s: float = RRD_STEP_S) -> np.ndarray:
+    """Indices (sorted) of samples at least ``step_m`` of path or ``step_s`` apart (first and last kept)."""
+    n = len(t)
+    if n == 0:
+        return np.zeros(0, dtype=int)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(np.asarray(xy)[:, :2], axis=0), axis=1))])
+    keep, s_last, t_last = [0], 0.0, float(t[0])
+    for i in range(1, n):
+        if s[i] - s_last >= step_m or t[i] - t_last >= step_s:
+            keep.append(i)
+            s_last, t_last = s[i], float(t[i])
+    if keep[-1] != n - 1:
+        keep.append(n - 1)
+    return np.asarray(keep, dtype=int)
 
 
 def ellipses(cov_xy: np.ndarray, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
@@ -109,7 +128,8 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
     for kind, cat in inputs.catalogs.items():
         landmark_logger(kind).log_catalog(rec, p(ENT_CATALOG, kind), cat)
     if gt is not None:
-        rec.log(p(ENT_TRUTH), rr.LineStrips3D([flat(gt.positions_m[:, :2], Z_TRUTH)], colors=COLORS["truth"],
+        k = path_samples(gt.t, gt.positions_m, step_s=np.inf)
+        rec.log(p(ENT_TRUTH), rr.LineStrips3D([flat(gt.positions_m[k, :2], Z_TRUTH)], colors=COLORS["truth"],
                                               radii=0.04), static=True)
         step = max(1, len(gt) // 3000)
         rr.send_columns(p(ENT_TRUTH_POSE), indexes=[rr.TimeColumn(TIMELINE, duration=gt.t[::step])],
@@ -117,9 +137,14 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
                         recording=rec)
     for key, run in runs.items():
         _log_run(rec, world, key, run, gt)
+    last_xy = None
     for a in attempts:
         if a.fix is None or len(a.local_xy) == 0:
             continue
+        here = np.array([a.fix.x_m, a.fix.y_m])
+        if last_xy is not None and np.hypot(*(here - last_xy)) < RRD_MATCH_STEP_M:
+            continue
+        last_xy = here
         rec.set_time(TIMELINE, duration=a.t_meas)
         strips = [np.array([[*l, Z_FIX], [*w, Z_FIX]]) for l, w in zip(a.local_xy, a.world_xy)]
         rec.log(p(ENT_MATCHES), rr.LineStrips3D(strips, colors=COLORS["match"], radii=0.02))
@@ -134,12 +159,15 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
 
     col = _color(key)
     if len(run.final):
-        rec.log(p(ENT_PATH), rr.LineStrips3D([flat(run.final.positions_m[:, :2], Z_PATH)], colors=col, radii=0.03),
+        k = path_samples(run.final.t, run.final.positions_m, step_s=np.inf)
+        rec.log(p(ENT_PATH), rr.LineStrips3D([flat(run.final.positions_m[k, :2], Z_PATH)], colors=col, radii=0.03),
                 static=True)
     for kind, lmap in run.landmarks.items():
         landmark_logger(kind).log_map(rec, p(ENT_LANDMARKS, kind), lmap, col)
     on = run.online
     if len(on):
+        k = path_samples(on.t, on.positions_m)
+        on = type(on)(on.t[k], on.T_world_base[k], on.cov[k])
         idx = rr.TimeColumn(TIMELINE, duration=on.t)
         rr.send_columns(p(ENT_POSE), indexes=[idx], columns=rr.Points3D.columns(
             positions=flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
@@ -152,7 +180,7 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
         rr.send_columns(p(ENT_POSE_COV), indexes=[idx], columns=rr.Ellipsoids3D.columns(
             centers=flat(on.positions_m[:, :2], Z_PATH), half_sizes=half, quaternions=q), recording=rec)
         if gt is not None:
-            _log_errors(rec, world, key, run, gt)
+            _log_errors(rec, world, key, on, run.final, gt)
     if run.outcomes:
         t = np.array([o.fix.t_recv for o in run.outcomes])
         xy = np.array([[o.fix.x_m, o.fix.y_m] for o in run.outcomes])
@@ -171,14 +199,19 @@ def _shade(rgb: tuple[int, int, int], style: str) -> tuple[int, int, int]:
     return rgb if target is None else tuple(int(round(0.5 * (c + target))) for c in rgb)
 
 
-def _log_errors(rec, world: str, key: str, run, gt) -> None:
+def _log_errors(rec, world: str, key: str, online, final, gt) -> None:
+    """Error and 3-sigma series of the online estimate ``online`` (already sampled along the path)
+    and the error of the final trajectory ``final`` (sampled here the same way)."""
     import rerun as rr
 
-    _, s = M.consistency(run.online, gt)
+    _, s = M.consistency(online, gt)
     err_pos = np.linalg.norm(s["err_xy"], axis=1)
-    mask = np.isin(run.online.t, s["t"])
-    sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(run.online.cov[mask][:, :2, :2])[:, -1])
-    final_err, final_t = M.position_errors(run.final, gt)
+    mask = np.isin(online.t, s["t"])
+    sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(online.cov[mask][:, :2, :2])[:, -1])
+    if len(final):
+        k = path_samples(final.t, final.positions_m)
+        final = type(final)(final.t[k], final.T_world_base[k], None if final.cov is None else final.cov[k])
+    final_err, final_t = M.position_errors(final, gt)
     for ent, vals, t, style in (
         (f"{ENT_ERR_POS}/{key}", err_pos, s["t"], "error"),
         (f"{ENT_ERR_POS}/{key}_3sigma", sig_pos, s["t"], "3σ"),

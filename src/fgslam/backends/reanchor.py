@@ -1,0 +1,144 @@
+"""Lost and found: a back-end that starts lost re-anchors on its first global fix.
+
+With the start pose unknown (or tens of metres and degrees off, its covariance saying so), no
+back-end can fuse the first fix as a small correction: the EKF's linearisation and the
+smoother's robust kernel both assume the fix is near the estimate. The relocalizer searches the
+whole catalog while the estimate is lost (``RelocalizerConfig.lost_sigma_m``); the first fix it
+finds re-anchors the back-end: the planar rigid motion ``D`` that takes the estimate at the fix's
+``t_meas`` onto the fix is applied to the current estimate, and the back-end starts anew there,
+its covariance the fix's plus the odometry's growth since ``t_meas``. Its past (the trajectory
+before the fix) is moved by the same ``D``. Afterwards the fixes take the prior-guided path and
+reach the back-end as usual.
+
+:class:`Reanchoring` wraps any back-end built by a factory; it is used when the start pose's
+position sigma exceeds ``lost_sigma_m`` (:func:`fgslam.backends.registry.make_backend`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+
+from reloc.backend import (
+    Backend,
+    BackendStats,
+    FixOutcome,
+    PoseEstimate,
+    Trajectory,
+    known_start_cov,
+)
+from reloc.geometry import wrap_angle
+from reloc.measurements import GlobalFix
+
+LOST_SIGMA_M = 5.0  # a pose whose largest planar sigma exceeds this is lost
+HISTORY_S = 120.0  # estimates kept while lost, to find the one at a late fix's t_meas
+
+
+def is_lost(est: PoseEstimate, lost_sigma_m: float = LOST_SIGMA_M) -> bool:
+    """Whether the largest planar position sigma of ``est`` exceeds ``lost_sigma_m``."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0))) > lost_sigma_m
+
+
+def planar_motion(xyyaw_from: np.ndarray, xyyaw_to: np.ndarray) -> np.ndarray:
+    """(4, 4) rotation about z and translation taking planar pose ``xyyaw_from`` onto ``xyyaw_to``."""
+    a = float(wrap_angle(xyyaw_to[2] - xyyaw_from[2]))
+    c, s = np.cos(a), np.sin(a)
+    D = np.eye(4)
+    D[:2, :2] = [[c, -s], [s, c]]
+    D[:2, 3] = np.asarray(xyyaw_to[:2]) - D[:2, :2] @ np.asarray(xyyaw_from[:2])
+    return D
+
+
+class Reanchoring(Backend):
+    """``make(initial)`` -> back-end, started at ``initial`` and re-anchored on the first fix
+    while lost (see module doc). Everything else is the wrapped back-end's."""
+
+    def __init__(self, make: Callable[[PoseEstimate], Backend], initial: PoseEstimate,
+                 lost_sigma_m: float = LOST_SIGMA_M) -> None:
+        self._make = make
+        self.inner = make(initial)
+        self.name = self.inner.name
+        self.config = self.inner.config
+        self.lost_sigma_m = lost_sigma_m
+        self._history: deque[PoseEstimate] = deque()
+        self._past: list[Trajectory] = []  # trajectories before each re-anchoring, moved by its D
+        self.reanchors: list[dict] = []
+
+    @property
+    def lost(self) -> bool:
+        return is_lost(self.inner.estimate(), self.lost_sigma_m)
+
+    def predict(self, step) -> None:
+        self.inner.predict(step)
+        if not self.reanchors:  # only while lost: the estimates a late first fix is placed on
+            est = self.inner.estimate()
+            self._history.append(est)
+            while self._history and self._history[0].t < est.t - HISTORY_S:
+                self._history.popleft()
+
+    def observe(self, obs):
+        return self.inner.observe(obs)
+
+    def expect_fix(self, t_meas: float) -> None:
+        self.inner.expect_fix(t_meas)
+
+    def apply_fix(self, fix: GlobalFix) -> FixOutcome:
+        if not self.lost:
+            return self.inner.apply_fix(fix)
+        then = self._at(fix.t_meas)
+        if then is None:
+            return FixOutcome(fix, False, "lost, and t_meas is older than the pose history kept while lost")
+        now = self.inner.estimate()
+        D = planar_motion(np.array([then.position_m[0], then.position_m[1], then.yaw_rad]), fix.xyyaw)
+        T = D @ now.T_world_base
+        cov = known_start_cov()
+        growth = np.clip(np.diag(now.cov) - np.diag(then.cov), 0.0, None)  # odometry since t_meas
+        sel = np.ix_([0, 1, 5], [0, 1, 5])
+        cov[sel] = np.asarray(fix.cov_xyyaw) + np.diag(growth[[0, 1, 5]])
+        past = self.inner.trajectory()
+        self._past.append(Trajectory(past.t, np.einsum("ij,njk->nik", D, past.T_world_base), past.cov))
+        self.inner = self._make(PoseEstimate(now.t, T, cov))
+        self._history.clear()
+        shift = float(np.hypot(*D[:2, 3]))
+        self.reanchors.append({"t_meas": fix.t_meas, "t": now.t, "shift_m": shift,
+                               "rotation_deg": float(np.degrees(np.arctan2(D[1, 0], D[0, 0])))})
+        return FixOutcome(fix, True, f"re-anchored: {shift:.1f} m, "
+                                     f"{self.reanchors[-1]['rotation_deg']:.1f} deg")
+
+    def _at(self, t: float) -> PoseEstimate | None:
+        if not self._history or t < self._history[0].t - 1e-6:
+            return None
+        ts = np.array([e.t for e in self._history])
+        return self._history[int(np.clip(np.searchsorted(ts, t), 0, len(ts) - 1))]
+
+    def estimate(self) -> PoseEstimate:
+        return self.inner.estimate()
+
+    def landmark_map(self, kind: str):
+        return self.inner.landmark_map(kind)
+
+    def trajectory(self) -> Trajectory:
+        """The trajectories before each re-anchoring (moved by it), then the current back-end's."""
+        cur = self.inner.trajectory()
+        if not self._past:
+            return cur
+        parts = [Trajectory(p.t[p.t < nxt], p.T_world_base[p.t < nxt], None if p.cov is None else p.cov[p.t < nxt])
+                 for p, nxt in zip(self._past, [r["t"] for r in self.reanchors])]
+        parts.append(cur)
+        covs = [p.cov for p in parts]
+        return Trajectory(np.concatenate([p.t for p in parts]), np.concatenate([p.T_world_base for p in parts]),
+                          None if any(c is None for c in covs) else np.concatenate(covs))
+
+    def stats(self) -> BackendStats:
+        s = self.inner.stats()
+        n_re = len(self.reanchors)
+        return BackendStats(s.n_predict, s.n_landmark_frames, s.n_fixes_accepted + n_re, s.n_fixes_rejected,
+                            s.n_landmarks, {**s.extra, "reanchors": list(self.reanchors)})
+
+    def __getattr__(self, name: str):  # the wrapped back-end's own extras (state size, calibration, ...)
+        inner = self.__dict__.get("inner")
+        if inner is None:
+            raise AttributeError(name)
+        return getattr(inner, name)

@@ -1,0 +1,72 @@
+"""Bounded back-ends on long traverses: which settings a stream longer than
+``LongTraverseConfig.min_duration_s`` gets by default.
+
+On a yard (10-25 min) the full iSAM2 history is affordable and loop closures are worth keeping;
+on a kilometre traverse that never comes back the full graph only grows (cost and memory), so
+the smoother runs fixed-lag with a window of ``isam2_fixed_lag_s``, and the EKF marginalises the
+landmarks it has left behind (``ekf_forget_distance_m``) instead of holding them until its bound
+needs the room. The window must be longer
+than the worst fix latency, so that no fix is lost to it: a fix is placed on the keyframe at its
+``t_meas``, which has to be still inside the window (less its margin) when the fix arrives at
+``t_recv``. A fix that is older all the same (a measured matching time far above the configured
+delay) is refused with its reason and counted (``n_fixes_older_than_window`` in the smoother's
+stats); the smoother stays usable.
+
+An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` keeps the full history).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fgslam.errors import FgslamError
+from reloc.config import Positive, checked
+
+
+class LongTraverseError(FgslamError):
+    """A long-traverse setting that cannot hold (a window shorter than the fix latency)."""
+
+
+@dataclass(frozen=True)
+@checked(LongTraverseError)
+class LongTraverseConfig:
+    """When a stream is a long traverse, and what its back-ends get then."""
+
+    min_duration_s: Positive = 1800.0  # streams longer than this (s) are long traverses
+    isam2_fixed_lag_s: Positive = 120.0  # iSAM2's fixed-lag window (s) on a long traverse
+    # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
+    # rock that far is behind a rover that does not come back
+    ekf_forget_distance_m: Positive = 40.0
+
+
+def stream_span_s(measurements) -> float:
+    """Span (s) of a measurement stream: a bag source's recorded span, or a list's first to last
+    stamp; nan when it cannot be known without reading the stream."""
+    span = getattr(measurements, "span_s", None)
+    if callable(span):
+        t0, t1 = span()
+        return float(t1 - t0)
+    if isinstance(measurements, (list, tuple)) and measurements:
+        return float(measurements[-1].t - measurements[0].t)
+    return float("nan")
+
+
+def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: float) -> None:
+    """Raise LongTraverseError unless the window holds a fix ``worst_latency_s`` late with
+    ``margin_s`` to spare (the smoother's ``fixes.window_margin_s``)."""
+    if cfg.isam2_fixed_lag_s <= worst_latency_s + margin_s:
+        raise LongTraverseError(
+            f"long_traverse.isam2_fixed_lag_s {cfg.isam2_fixed_lag_s:g} s is not longer than the worst fix "
+            f"latency {worst_latency_s:g} s plus the window margin {margin_s:g} s: fixes would be lost to the window")
+
+
+def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
+                          cfg: LongTraverseConfig) -> dict | None:
+    """The overrides back-end ``name`` runs with on a stream of ``duration_s``: on a long
+    traverse iSAM2 gets ``fixed_lag_s`` and the EKF ``forget_distance_m`` unless the overrides
+    set them; otherwise unchanged."""
+    key, value = {"isam2": ("fixed_lag_s", cfg.isam2_fixed_lag_s),
+                  "ekf": ("forget_distance_m", cfg.ekf_forget_distance_m)}.get(name, (None, None))
+    if key is None or not duration_s > cfg.min_duration_s or (overrides and key in overrides):
+        return overrides
+    return {**(overrides or {}), key: value}

@@ -1,0 +1,69 @@
+"""The long-traverse defaults (fgslam.long_traverse) and the frame-latency histogram."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fgslam.compare import CompareConfig
+from fgslam.long_traverse import (
+    LongTraverseConfig,
+    LongTraverseError,
+    backend_overrides_for,
+    check_window,
+    stream_span_s,
+)
+from fgslam.timing import LatencyHistogram
+from reloc.measurements import CmdVel
+
+
+def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
+    cfg = LongTraverseConfig(min_duration_s=1800.0, isam2_fixed_lag_s=90.0)
+    assert backend_overrides_for("isam2", None, 1000.0, cfg) is None  # a yard: full history
+    assert backend_overrides_for("isam2", None, 3600.0, cfg) == {"fixed_lag_s": 90.0}
+    over = {"calibration": {"yaw_sigma_deg": 0.15}}
+    assert backend_overrides_for("isam2", over, 3600.0, cfg) == {**over, "fixed_lag_s": 90.0}
+    assert backend_overrides_for("isam2", {"fixed_lag_s": 0.0}, 3600.0, cfg) == {"fixed_lag_s": 0.0}
+    assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0}
+    assert backend_overrides_for("ekf", over, 1000.0, cfg) is over
+    assert backend_overrides_for("dr", None, 3600.0, cfg) is None
+    assert backend_overrides_for("isam2", None, float("nan"), cfg) is None  # unknown span
+
+
+def test_a_window_shorter_than_the_fix_latency_is_refused():
+    check_window(LongTraverseConfig(isam2_fixed_lag_s=10.0), 2.0, 2.0)
+    with pytest.raises(LongTraverseError, match="worst fix latency"):
+        check_window(LongTraverseConfig(isam2_fixed_lag_s=3.0), 2.0, 2.0)
+    with pytest.raises(LongTraverseError, match="isam2_fixed_lag_s"):
+        CompareConfig(long_traverse=LongTraverseConfig(isam2_fixed_lag_s=3.0))
+
+
+def test_stream_span():
+    ms = [CmdVel(t, 0.1, 0.0) for t in (5.0, 6.0, 17.5)]
+    assert stream_span_s(ms) == 12.5
+    assert np.isnan(stream_span_s(iter(ms)))
+
+
+def test_latency_histogram_percentiles_within_a_bin():
+    rng = np.random.default_rng(0)
+    x = rng.lognormal(np.log(2e-3), 0.8, 5000)
+    h = LatencyHistogram()
+    for v in x:
+        h.add(float(v))
+    for q in (50, 99):
+        exact = float(np.percentile(x, q))
+        assert exact <= h.percentile_s(q) <= exact * 1.13
+    assert h.to_dict()["n"] == 5000 and h.to_dict()["max_ms"] == pytest.approx(1e3 * x.max())
+    assert np.isnan(LatencyHistogram().percentile_s(99))
+
+
+def test_corrupted_fixes_are_the_asked_share_moved_5_to_50_m():
+    from fgslam.bench.wrong_fixes import corrupt_fixes
+    from reloc.measurements import GlobalFix
+
+    fixes = [GlobalFix(float(t), float(t) + 2.0, 1.0 * t, 0.0, 0.0, np.eye(3) * 0.01) for t in range(50)]
+    out, wrong = corrupt_fixes(fixes, 0.2, seed=3)
+    assert wrong.sum() == 10
+    d = np.array([np.hypot(a.x_m - b.x_m, a.y_m - b.y_m) for a, b in zip(out, fixes)])
+    assert np.all(d[~wrong] == 0.0) and np.all((d[wrong] >= 5.0) & (d[wrong] <= 50.0))
+    assert np.array_equal(corrupt_fixes(fixes, 0.2, seed=3)[1], wrong)
