@@ -71,6 +71,28 @@ def worker_initializer(parent_pid: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the parent's handler (nor a deferred one)
 
 
+EXIT_GRACE_S = 10.0
+
+
+def exit_watchdog(code: int, grace_s: float = EXIT_GRACE_S) -> None:
+    """After a signal: make sure this process ends with ``code`` within ``grace_s`` s. Its cleanup
+    (outputs removed, workers killed) has run; what remains is the interpreter's own shutdown,
+    which waits for every non-daemon thread and child process it knows of, and a worker or thread
+    left in an odd state by the signal can make that wait for ever. Live children are killed."""
+    for p in mp.active_children():
+        with contextlib.suppress(Exception):
+            p.kill()
+
+    def _force() -> None:
+        time.sleep(grace_s)
+        log.warning("shutdown did not finish within %.0f s of the signal: exiting", grace_s)
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        os._exit(code)
+
+    threading.Thread(target=_force, name="exit-watchdog", daemon=True).start()
+
+
 def kill_pool(pool, spare: frozenset = frozenset()) -> None:
     """Stop a ``ProcessPoolExecutor`` now: its workers are killed, pending work cancelled (the
     pool's own shutdown would wait for every running task to finish).

@@ -328,3 +328,16 @@ def test_catalog_errors_name_the_option_and_write_no_unusable_file(tmp_path, cap
     err = capsys.readouterr().err
     assert "0 rocks detected, a catalog needs at least 3" in err and not (tmp_path / "c.csv").exists()
     assert os.listdir(tmp_path) == ["blank.png"]
+
+
+def test_a_signalled_process_ends_even_when_its_shutdown_would_wait_for_ever():
+    """After a signal, cleanup done, the interpreter's own shutdown waits for every non-daemon
+    thread: one stuck for ever (like a worker left in an odd state) no longer keeps it alive."""
+    code = ("import sys, threading, time; from fgslam.lifetime import exit_watchdog; "
+            "threading.Thread(target=time.sleep, args=(3600,)).start(); "
+            "exit_watchdog(143, grace_s=0.5); sys.exit(143)")
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 143
+    assert time.monotonic() - t0 < 30
+    assert "did not finish" in proc.stderr

@@ -36,7 +36,11 @@ def _error_types() -> tuple[type[BaseException], ...]:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: run the typer app, map library errors to exit code 2."""
-    from fgslam.lifetime import Terminated, terminate_on_sigterm
+    from fgslam.lifetime import Terminated, exit_watchdog, terminate_on_sigterm
+
+    def _ending(code: int) -> None:  # the process's own entry point (not a caller's main([...])): it must end
+        if argv is None:
+            exit_watchdog(code)
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -45,12 +49,15 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(result, int):  # click returns typer.Exit's code in non-standalone mode
             if result == 130:  # typer turns Ctrl-C into Exit(130)
                 sys.stderr.write("fgslam: interrupted\n")
+                _ending(130)
             return result
     except Terminated as exc:
         sys.stderr.write("fgslam: terminated\n")
+        _ending(128 + exc.signum)
         return 128 + exc.signum
     except KeyboardInterrupt:
         sys.stderr.write("fgslam: interrupted\n")
+        _ending(130)
         return 130
     except SystemExit as exc:  # typer/click exits for --help and usage errors
         return int(exc.code or 0)
@@ -64,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             return int(exc.exit_code)
         if "Abort" in names:  # click's form of Ctrl-C
             sys.stderr.write("fgslam: interrupted\n")
+            _ending(130)
             return 130
         raise
     return 0
