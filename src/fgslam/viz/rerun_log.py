@@ -92,6 +92,14 @@ def path_samples(t: np.ndarray, xy: np.ndarray, step_m: float = RRD_STEP_M, step
     return np.asarray(keep, dtype=int)
 
 
+def along_path(traj):
+    """``traj`` at the poses :func:`path_samples` keeps (a recording that grows with distance)."""
+    if not len(traj):
+        return traj
+    k = path_samples(traj.t, traj.positions_m)
+    return type(traj)(traj.t[k], traj.T_world_base[k], None if traj.cov is None else traj.cov[k])
+
+
 def ellipses(cov_xy: np.ndarray, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """Half sizes (K, 3) and z-rotation quaternions xyzw (K, 4) of the ``sigmas`` ellipses of (K, 2, 2) covariances."""
     w, v = np.linalg.eigh(0.5 * (cov_xy + np.swapaxes(cov_xy, 1, 2)))
@@ -166,8 +174,7 @@ def _log_run(rec, world: str, key: str, run, gt) -> None:
         landmark_logger(kind).log_map(rec, p(ENT_LANDMARKS, kind), lmap, col)
     on = run.online
     if len(on):
-        k = path_samples(on.t, on.positions_m)
-        on = type(on)(on.t[k], on.T_world_base[k], on.cov[k])
+        on = along_path(on)
         idx = rr.TimeColumn(TIMELINE, duration=on.t)
         rr.send_columns(p(ENT_POSE), indexes=[idx], columns=rr.Points3D.columns(
             positions=flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
@@ -201,17 +208,14 @@ def _shade(rgb: tuple[int, int, int], style: str) -> tuple[int, int, int]:
 
 def _log_errors(rec, world: str, key: str, online, final, gt) -> None:
     """Error and 3-sigma series of the online estimate ``online`` (already sampled along the path)
-    and the error of the final trajectory ``final`` (sampled here the same way)."""
+    and the error of the final trajectory ``final`` (sampled here the same way, :func:`along_path`)."""
     import rerun as rr
 
     _, s = M.consistency(online, gt)
     err_pos = np.linalg.norm(s["err_xy"], axis=1)
     mask = np.isin(online.t, s["t"])
     sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(online.cov[mask][:, :2, :2])[:, -1])
-    if len(final):
-        k = path_samples(final.t, final.positions_m)
-        final = type(final)(final.t[k], final.T_world_base[k], None if final.cov is None else final.cov[k])
-    final_err, final_t = M.position_errors(final, gt)
+    final_err, final_t = M.position_errors(along_path(final), gt)
     for ent, vals, t, style in (
         (f"{ENT_ERR_POS}/{key}", err_pos, s["t"], "error"),
         (f"{ENT_ERR_POS}/{key}_3sigma", sig_pos, s["t"], "3σ"),
