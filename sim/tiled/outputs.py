@@ -1,8 +1,9 @@
 """A kilometre-preset ``fgslam sim`` directory, written in one streaming pass:
 ``bag/`` (written while the rover drives), the orbital products of :mod:`sim.tiled.orbital`,
 ``world.yaml`` (world, seed, extents, georeference, models, the resolved config, statistics and
-the ``backend_overrides`` the back-ends need for this run's stereo errors) and ``backend.yaml``
-(that block alone, for ``fgslam run/compare --config``)."""
+the ``backend_overrides`` the back-ends need for this run's stereo errors, the ``relocalizer``
+settings sized to its catalog) and ``backend.yaml`` (those two blocks alone, for
+``fgslam run/compare --config``)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from sim.config import SimConfig
 from sim.errors import SimError
 from sim.outputs import _plain
 from sim.tiled.orbital import OrbitalProducts, write_orbital_products
-from sim.tiled.presets import TILED_PRESETS, backend_calibration
+from sim.tiled.presets import TILED_PRESETS, backend_calibration, relocalizer_calibration
 from sim.tiled.stream import TiledSimulation, cpu_s, peak_rss_mb
 
 log = logging.getLogger(__name__)
@@ -73,6 +74,7 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
     rc = sim.config
     world = sim.world
     overrides = backend_calibration(rc)
+    reloc = relocalizer_calibration(rc)
     doc = {
         "world": rc.world,
         "seed": int(rc.seed),
@@ -99,11 +101,13 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
                          "diameter_m": [rc.tiled.craters.min_diameter_m, rc.tiled.craters.max_diameter_m]},
         "route": [[round(float(x), 2), round(float(y), 2)] for x, y in sim.driver.route],
         "backend_overrides": overrides,
+        "relocalizer": reloc,
         "config": config_to_dict(rc),
         "stats": stats,
     }
     (out / "world.yaml").write_text(yaml.safe_dump(_plain(doc), sort_keys=False))
-    (out / "backend.yaml").write_text(yaml.safe_dump(_plain({"backend_overrides": overrides}), sort_keys=False))
+    (out / "backend.yaml").write_text(yaml.safe_dump(_plain({"backend_overrides": overrides, "relocalizer": reloc}),
+                                                       sort_keys=False))
     log.info("wrote %s: %.0f m, bag %.1f MB, %.1f x real time, peak RSS %.0f MB", out, stats["distance_m"],
              bag.n_bytes / 1e6, stats["real_time_factor"], stats["peak_rss_mb"])
     return TiledRun(rc, stats, bag, products, doc["route"])

@@ -114,6 +114,16 @@ def resolve_tiled_config(cfg: SimConfig) -> SimConfig:
     )
 
 
+def relocalizer_calibration(cfg: SimConfig) -> dict:
+    """The ``relocalizer`` block that sizes the rock matcher to this run's catalog: its per-axis
+    sigma between local map and catalog is the catalog's position error, ``sigma_position_px``
+    ground samples (the published detector: 2 px, 0.5 m at 0.25 m/px). The matcher's default
+    (0.1 m) is 2 px of the yards' 5 cm images; at HiRISE resolution true pairs lie 5x outside it
+    and no triangle of them can vote (docs/sim.md, "Rock fixes at orbital scale")."""
+    det = resolve_orbital(cfg.sensors.orbital)
+    return {"matcher": {"sigma_m": round(float(det.gsd_m * det.sigma_position_px), 6)}}
+
+
 def backend_calibration(cfg: SimConfig) -> dict:
     """The ``backend_overrides`` block the back-ends need for this run's stereo errors (the
     calibration states of docs/ekf.md and docs/smoother.md, sized by the simulated errors); empty

@@ -21,7 +21,9 @@ from reloc.errors import ConfigError, RelocError
 log = logging.getLogger(__name__)
 
 RUN_RECORD_KEYS = ("backend", "relocalization", "inputs")  # what `fgslam run` saves beside its config
-SIM_RECORD_KEYS = ("world", "seed", "source", "extent", "orbital_extent", "orbital_gsd_m", "relief_m", "preset", "stats")
+SIM_RECORD_KEYS = ("world", "seed", "source", "extent", "orbital_extent", "orbital_gsd_m", "relief_m", "preset", "stats",
+                   # a kilometre preset's world.yaml (sim.tiled.outputs) also records these
+                   "summary", "orbital_image", "rock_model", "crater_model", "route", "backend_overrides", "relocalizer")
 
 
 def read_yaml_mapping(path: Path, what: str = "config") -> dict:

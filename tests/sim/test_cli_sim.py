@@ -87,3 +87,30 @@ def test_cli_sim_image_detections_path(tmp_path):
     assert len(read_catalog_csv(out / "catalog.csv")) > 10
     assert main(["sim", "--world", "cnes", "--distance-m", "3", "--detections", "pixels",
                  "--out", str(tmp_path / "bad")]) != 0
+
+
+def test_a_kilometre_run_sizes_the_matcher_to_its_catalog_and_its_world_yaml_is_accepted_back(tmp_path):
+    """backend.yaml carries the rock matcher's sigma of this catalog (2 px at 0.25 m/px), the
+    catalog's true entries scatter by that much, and world.yaml (with the kilometre preset's
+    extra records) is accepted back by --config as the same simulator config."""
+    from fgslam.cli.cmd_sim import load_sim_config
+    from fgslam.config_file import load_compare_config
+    from reloc.config import config_to_dict
+
+    out = tmp_path / "km"
+    assert main(["sim", "--world", "rocky-1km", "--seed", "3", "--out", str(out), "--distance-m", "5"]) == 0
+    cfg = load_compare_config(out / "backend.yaml")
+    sigma = cfg.relocalizer.matcher["sigma_m"]
+    assert sigma == 0.5
+    cat = np.genfromtxt(out / "catalog.csv", delimiter=",", names=True)
+    rid = np.loadtxt(out / "catalog_truth.csv", skiprows=1, dtype=np.int64)
+    rocks = np.genfromtxt(out / "rocks_true.csv", delimiter=",", names=True, dtype=None)
+    where = {int(i): k for k, i in enumerate(rocks["id"])}
+    true = np.flatnonzero(rid >= 0)
+    assert len(true) > 30
+    k = np.array([where[int(i)] for i in rid[true]])
+    err = np.concatenate([cat["x"][true] - rocks["x"][k], cat["y"][true] - rocks["y"][k]])
+    assert 0.8 * sigma < np.std(err) < 1.2 * sigma  # the matcher's sigma is the catalog's real scatter
+    world = yaml.safe_load((out / "world.yaml").read_text())
+    assert world["relocalizer"] == {"matcher": {"sigma_m": 0.5}}
+    assert config_to_dict(load_sim_config(None, None, None, out / "world.yaml")) == world["config"]
