@@ -154,6 +154,43 @@ def test_old_fixes_are_rejected_with_a_reason_and_fixed_lag_keeps_working(short_
     assert ate_m(short_run, tr.t, tr.T_world_base) < 0.3
 
 
+def test_fixed_lag_marginalizes_in_batches_once_per_period(short_run):
+    """With marginalize_every_s, poses leave the window in batches at most once per period and
+    stay between fixed_lag_s and fixed_lag_s + the period old; the estimate is that of
+    marginalizing at every keyframe."""
+    lag_s, every = 10.0, 4.0
+    runs = {}
+    for e in (0.0, every):
+        sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(fixed_lag_s=lag_s, marginalize_every_s=e))
+        leave_times, ages = [], []
+        update = sm.solver.update
+
+        def spy(*a, _sm=sm, _update=update, **k):
+            before = {key for key in _sm.solver._alive if gtsam.Symbol(key).chr() == ord("x")}
+            out = _update(*a, **k)
+            after = {key for key in _sm.solver._alive if gtsam.Symbol(key).chr() == ord("x")}
+            t_now = _sm.kfs.t[-1]
+            if before - after:
+                leave_times.append(t_now)
+            ages.extend(t_now - _sm.kfs.t[gtsam.Symbol(key).index()] for key in after)
+            return out
+
+        sm.solver.update = spy
+        drive(sm, short_run.measurements, [])
+        runs[e] = (sm, np.array(leave_times), np.array(ages))
+    dt_kf = float(np.median(np.diff(runs[0.0][0].kfs.t)))
+    for e, (_sm, leave, ages) in runs.items():
+        assert len(leave) > 3
+        assert ages.max() <= lag_s + e + dt_kf + 1e-6
+        if e > 0:
+            assert np.all(np.diff(leave) >= e - 1e-6)  # one batch per period, not one per keyframe
+        else:
+            assert np.median(np.diff(leave)) <= dt_kf + 1e-6
+    a, b = (runs[e][0].trajectory() for e in (0.0, every))
+    assert ate_m(short_run, a.t, a.T_world_base) < 0.3 and ate_m(short_run, b.t, b.T_world_base) < 0.3
+    assert np.max(np.linalg.norm(a.T_world_base[:, :3, 3] - b.T_world_base[:, :3, 3], axis=1)) < 0.05
+
+
 def test_failed_updates_leave_the_solver_usable(short_run):
     sm = Isam2Smoother(short_run.initial_pose, SmootherConfig())
     drive(sm, short_run.measurements[: len(short_run.measurements) // 3], [])

@@ -134,6 +134,13 @@ class SmootherConfig:
     partial_relinearization_check: bool = True  # iSAM2 checks for relinearization only from the
     # root down while deltas exceed the threshold (x1.3 real time on the simulator, ATE +2 %)
     fixed_lag_s: NonNegative = 0.0
+    # fixed-lag: keys are stamped with their keyframe's time rounded down to a multiple of this,
+    # so they leave the window in batches once per period (the window spans fixed_lag_s to
+    # fixed_lag_s + this). Every update that marginalizes makes GTSAM's fixed-lag smoother
+    # re-order the tree with the leaving keys first: marginalizing at every keyframe re-eliminated
+    # about half the window at each update (docs/smoother.md, "Fixed-lag cost"). 0: every keyframe;
+    # full mode: unused
+    marginalize_every_s: NonNegative = 5.0
     frozen_marginals: bool = False  # fixed-lag: marginal covariance of a keyframe as it leaves the
     # window (~1 ms each) instead of its causal covariance (an upper bound)
     snapshot_before_fixes: bool = True  # full mode: copy ISAM2 (~ms) before fix updates and retractions

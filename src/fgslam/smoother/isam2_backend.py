@@ -91,14 +91,14 @@ class Isam2Smoother(LateFixes, Backend):
         graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(initial.T_world_base), prior))
         values = gtsam.Values()
         values.insert(X(k), gtsam.Pose3(initial.T_world_base))
-        self._stamps[X(k)] = initial.t
+        self._stamps[X(k)] = self._stamp(initial.t)
         cal = self.config.calibration
         self.calibrated = cal.enabled
         if self.calibrated:  # C(0): rotation error (3) and scale - 1 of the rock measurements
             sig = np.maximum(cal.prior_sigmas(), 1e-6)  # (a sigma of 0: held at 0 by a stiff prior)
             graph.add(gtsam.PriorFactorVector(C(0), np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sig)))
             values.insert(C(0), np.zeros(4))
-        self.solver.update(graph, values, {X(k): initial.t})
+        self.solver.update(graph, values, {X(k): self._stamp(initial.t)})
         self.kinds = SmootherKinds(self.config, C(0) if self.calibrated else None)
         self.acc = OdometryAccumulator(initial.t)
         self.segments: dict[int, OdometryAccumulator] = {k: self.acc}
@@ -250,7 +250,8 @@ class Isam2Smoother(LateFixes, Backend):
             odo.add(gravity_factor(X(k), acc.R_ref_base, self.config.odometry.gravity_sigma_rad))
         vals = gtsam.Values()
         vals.insert(X(k), gtsam.Pose3(self.T_kf @ acc.T_kf_now))
-        stamps = {X(k): t}
+        ts = self._stamp(t)
+        stamps = {X(k): ts}
         graph = gtsam.NonlinearFactorGraph()
         graph.push_back(odo)
         graph.push_back(self._buf_graph)
@@ -258,11 +259,11 @@ class Isam2Smoother(LateFixes, Backend):
         full_vals.insert(self._buf_values)
         full_stamps = dict(stamps)
         for layer in self.kinds.used():
-            full_stamps.update(layer.buffered_stamps(t))
+            full_stamps.update(layer.buffered_stamps(ts))
         if self.solver.fixed_lag and self.calibrated:
-            stamps[C(0)] = full_stamps[C(0)] = t  # every rock factor uses it: it never leaves the window
+            stamps[C(0)] = full_stamps[C(0)] = ts  # every rock factor uses it: it never leaves the window
         if self.solver.fixed_lag:
-            self._before_marginalization(t, full_stamps)
+            self._before_marginalization(ts, full_stamps)
         try:
             self._timed_update(graph, full_vals, full_stamps)
             self._stamps.update(full_stamps)
@@ -283,8 +284,14 @@ class Isam2Smoother(LateFixes, Backend):
         self._prune_history(t)
         self._refresh_latest()
 
+    def _stamp(self, t: float) -> float:
+        """The fixed-lag timestamp of a key made at ``t`` (see ``SmootherConfig.marginalize_every_s``)."""
+        every = self.config.marginalize_every_s
+        return float(np.floor(t / every) * every) if every > 0 else float(t)
+
     def _before_marginalization(self, t: float, new_stamps: dict[int, float]) -> None:
-        """Fixed-lag: freeze the estimates of keys that the coming update will marginalize."""
+        """Fixed-lag: freeze the estimates of keys that the coming update (newest stamp ``t``)
+        will marginalize: those stamped before ``t - fixed_lag_s``."""
         horizon = t - self.config.fixed_lag_s
         stamps = dict(self._stamps)
         stamps.update(new_stamps)
