@@ -36,6 +36,7 @@ from reloc.geometry import log_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep
+from reloc.rows import RowBuffer
 
 log = logging.getLogger(__name__)
 
@@ -78,9 +79,7 @@ class EkfSlam(Backend):
         )
         self._kinds = kind_updates(self.config)
         self._hist = History(self.config.history_s)
-        self._traj_t: list[float] = []
-        self._traj_T: list[np.ndarray] = []
-        self._traj_cov: list[np.ndarray] = []
+        self._traj = RowBuffer(1 + 16 + POSE_DIM * POSE_DIM)  # t, T_world_base, pose covariance
         self._replaying = False
         self._count = {"n_predict": 0, "n_landmark_frames": 0, "n_fixes_accepted": 0, "n_fixes_rejected": 0,
                        "n_late_fixes": 0, "n_replayed_entries": 0, "n_attitude_updates": 0}
@@ -89,7 +88,7 @@ class EkfSlam(Backend):
         self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
         self._reset_Q: dict[tuple, np.ndarray] = {}  # inflation applied with each consensus fix (for replays)
         self._record()
-        self._hist.checkpoint(self._s, len(self._traj_t))
+        self._hist.checkpoint(self._s, len(self._traj))
 
     # ------------------------------------------------------------------ protocol
     def predict(self, step: OdometryStep) -> None:
@@ -120,7 +119,7 @@ class EkfSlam(Backend):
         cps = self._hist.checkpoints
         if cps and cps[-1].t >= s.t - _T_EPS and cps[-1].log_index == len(self._hist.log):
             return
-        self._hist.checkpoint(s, len(self._traj_t))
+        self._hist.checkpoint(s, len(self._traj))
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         """Gate and apply a planar fix at ``fix.t_meas``, rolling back and replaying when it is late."""
@@ -155,10 +154,11 @@ class EkfSlam(Backend):
 
     def trajectory(self) -> Trajectory:
         """Filtered pose history (one entry per step, or per ``trajectory_period_s``)."""
+        rows = self._traj.array()
         return Trajectory(
-            t=np.array(self._traj_t),
-            T_world_base=np.array(self._traj_T).reshape(-1, 4, 4),
-            cov=np.array(self._traj_cov).reshape(-1, 6, 6),
+            t=rows[:, 0].copy(),
+            T_world_base=rows[:, 1:17].reshape(-1, 4, 4).copy(),
+            cov=rows[:, 17:].reshape(-1, POSE_DIM, POSE_DIM).copy(),
         )
 
     def stats(self) -> BackendStats:
@@ -244,7 +244,7 @@ class EkfSlam(Backend):
         self._hist.log.append(Entry("step", step.t1, step))
         if s.t - s.t_last_checkpoint >= cfg.checkpoint_period_s - _T_EPS:
             s.t_last_checkpoint = s.t
-            self._hist.checkpoint(s, len(self._traj_t))
+            self._hist.checkpoint(s, len(self._traj))
             self._hist.prune(s.t_input)
 
     def _attitude_update(self, R_ref_base: np.ndarray) -> None:
@@ -317,12 +317,12 @@ class EkfSlam(Backend):
     def _apply_late(self, fix: GlobalFix) -> FixOutcome:
         """Roll back to the newest checkpoint at or before t_meas, replay to t_meas (splitting the
         step that straddles it), apply the fix, replay the rest; on rejection restore everything."""
-        saved = (self._s, self._hist.snapshot(), list(self._traj_t), list(self._traj_T), list(self._traj_cov))
         i = self._hist.latest_before(fix.t_meas)
         ckpt = self._hist.checkpoints[i]
+        saved = (self._s, self._hist.snapshot(), self._traj.array(ckpt.n_trajectory))  # the trajectory's tail only
         tail = self._hist.rewind(i)
         self._s = ckpt.state.copy()
-        del self._traj_t[ckpt.n_trajectory :], self._traj_T[ckpt.n_trajectory :], self._traj_cov[ckpt.n_trajectory :]
+        self._traj.truncate(ckpt.n_trajectory)
         k = next((j for j, e in enumerate(tail) if e.t > fix.t_meas), len(tail))
         before, after = tail[:k], tail[k:]
         if after and after[0].kind == "step" and after[0].item.t0 < fix.t_meas:
@@ -336,7 +336,8 @@ class EkfSlam(Backend):
             if not outcome.accepted:
                 self._s, snap = saved[0], saved[1]
                 self._hist.restore(snap)
-                self._traj_t, self._traj_T, self._traj_cov = saved[2], saved[3], saved[4]
+                self._traj.truncate(ckpt.n_trajectory)
+                self._traj.extend(saved[2])
                 return outcome
             self._hist.log.append(Entry("fix", fix.t_meas, fix))
             self._replay(after)
@@ -381,11 +382,12 @@ class EkfSlam(Backend):
 
     def _record(self) -> None:
         s, period = self._s, self.config.trajectory_period_s
-        if self._traj_t and self._traj_t[-1] == s.t:
-            self._traj_T[-1], self._traj_cov[-1] = self._T(), s.P[:POSE_DIM, :POSE_DIM].copy()
-            return
-        if self._traj_t and period > 0 and s.t - self._traj_t[-1] < period - _T_EPS:
-            return
-        self._traj_t.append(s.t)
-        self._traj_T.append(self._T())
-        self._traj_cov.append(s.P[:POSE_DIM, :POSE_DIM].copy())
+        row = np.concatenate(([s.t], self._T().ravel(), s.P[:POSE_DIM, :POSE_DIM].ravel()))
+        if len(self._traj):
+            last = self._traj.last()
+            if last[0] == s.t:
+                last[:] = row
+                return
+            if period > 0 and s.t - last[0] < period - _T_EPS:
+                return
+        self._traj.append(row)

@@ -34,6 +34,7 @@ from reloc.config import NonNegativeInt, Positive, checked
 from reloc.kinds import UnknownKindError, kind_of
 from reloc.measurements import CmdVel, GlobalFix, GroundTruthPose, ImuSample, WheelOdometry
 from reloc.odometry import OdometryAssembler
+from reloc.rows import RowBuffer
 
 log = logging.getLogger(__name__)
 
@@ -110,34 +111,6 @@ def truth_from_rows(g: np.ndarray) -> Trajectory | None:
     T[:, :3, :3] = Rotation.from_quat(g[:, 4:8]).as_matrix()
     T[:, :3, 3] = g[:, 1:4]
     return Trajectory(g[:, 0].copy(), T, None)
-
-
-class RowBuffer:
-    """Float64 rows of one width appended one by one, kept in blocks of ``block`` rows: a
-    kilometre traverse records ~10^5-10^6 poses, and as a list of objects (each with its own small
-    arrays) they cost several times the numbers they hold (``fgslam run`` grew ~0.36 MB per metre)."""
-
-    def __init__(self, width: int, block: int = 4096) -> None:
-        self.width, self.block = width, block
-        self._full: list[np.ndarray] = []
-        self._cur = np.empty((block, width))
-        self._n = 0
-
-    def __len__(self) -> int:
-        return len(self._full) * self.block + self._n
-
-    def append(self, row) -> None:
-        if self._n == self.block:
-            self._full.append(self._cur)
-            self._cur, self._n = np.empty((self.block, self.width)), 0
-        self._cur[self._n] = row
-        self._n += 1
-
-    def last(self) -> np.ndarray:
-        return self._cur[self._n - 1] if self._n else self._full[-1][-1]
-
-    def array(self) -> np.ndarray:
-        return np.concatenate([*self._full, self._cur[: self._n]]) if len(self) else np.zeros((0, self.width))
 
 
 class RunRecorder:

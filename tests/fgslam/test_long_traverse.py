@@ -24,7 +24,10 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     over = {"calibration": {"yaw_sigma_deg": 0.15}}
     assert backend_overrides_for("isam2", over, 3600.0, cfg) == {**over, "fixed_lag_s": 90.0}
     assert backend_overrides_for("isam2", {"fixed_lag_s": 0.0}, 3600.0, cfg) == {"fixed_lag_s": 0.0}
-    assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0}
+    assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
+                                                                 "trajectory_period_s": 0.1}
+    assert backend_overrides_for("ekf", {"trajectory_period_s": 0.0}, 3600.0, cfg) == {
+        "trajectory_period_s": 0.0, "forget_distance_m": 40.0}
     assert backend_overrides_for("ekf", over, 1000.0, cfg) is over
     assert backend_overrides_for("dr", None, 3600.0, cfg) is None
     assert backend_overrides_for("isam2", None, float("nan"), cfg) is None  # unknown span
