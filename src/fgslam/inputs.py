@@ -302,7 +302,7 @@ def truth_of(inputs: RunInputs) -> Trajectory | None:
     from fgslam.runner import ground_truth_trajectory
 
     ground_truth = getattr(inputs.measurements, "ground_truth", None)  # a stream reads just that topic
-    poses = ground_truth() if ground_truth is not None else [m for m in inputs.measurements if isinstance(m, GroundTruthPose)]
+    poses = ground_truth() if ground_truth is not None else (m for m in inputs.measurements if isinstance(m, GroundTruthPose))
     return ground_truth_trajectory(poses)
 
 

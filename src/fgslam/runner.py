@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -98,9 +98,13 @@ class RunResult:
         return sum(len(m) for m in self.landmarks.values())
 
 
-def ground_truth_trajectory(poses: Sequence[GroundTruthPose]) -> Trajectory | None:
-    """Stack ground-truth messages into a Trajectory (None when there are none)."""
-    return truth_from_rows(np.array([(g.t, *g.position_m, *g.quat_xyzw) for g in poses]).reshape(-1, 8))
+def ground_truth_trajectory(poses: Iterable[GroundTruthPose]) -> Trajectory | None:
+    """Stack ground-truth messages (any iterable, consumed once) into a Trajectory (None when
+    there are none)."""
+    rows = RowBuffer(8)
+    for g in poses:
+        rows.append((g.t, *g.position_m, *g.quat_xyzw))
+    return truth_from_rows(rows.array())
 
 
 def truth_from_rows(g: np.ndarray) -> Trajectory | None:

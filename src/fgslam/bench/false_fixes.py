@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam.relocalizer import FixAttempt
 from fgslam.local_window import LocalMapWindow
+from fgslam.relocalizer import FixAttempt
 from reloc.backend import LandmarkMap, PoseEstimate, Trajectory
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,7 @@ class OutOfCatalogProbe:
             m2, e2 = shifted(lmap, est, dxy)
             away = self.away.attempt({kind: m2}, e2)
             rec.update(away=away.status, away_shift_m=float(np.hypot(*dxy)),
-                       away_inliers=None if away.fix is None else int(len(away.local_xy)))
+                       away_inliers=None if away.fix is None else len(away.local_xy))
         self.records.append(rec)
         return FixAttempt(est.t, len(lmap), f"probe: {home.status}", home.match_time_s, source=kind)
 
@@ -164,8 +164,8 @@ def main(argv: list[str] | None = None) -> dict:
     from fgslam.inputs import check_stream, load_sim_dir, truth_of
     from fgslam.long_traverse import backend_overrides_for
     from fgslam.runner import run_backend
-    from reloc.matcher import MatcherConfig
     from reloc.config import config_from_dict
+    from reloc.matcher import MatcherConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("directory", type=Path)

@@ -228,9 +228,10 @@ class BagSource:
     def __iter__(self) -> Iterator[Measurement]:
         return self._stream(self._roles)
 
-    def ground_truth(self) -> list[Measurement]:
-        """The ground-truth measurements only (reads just that topic; [] when the bag has none)."""
-        return list(self._only(("ground_truth",)))
+    def ground_truth(self) -> Iterator[Measurement]:
+        """The ground-truth measurements only, lazily (reads just that topic; nothing when the bag
+        has none): a kilometre bag holds ~10^6 of them, held as objects they cost ~0.5 GB."""
+        return self._only(("ground_truth",))
 
     def first_of(self, cls: type) -> Measurement | None:
         """The first measurement of type ``cls`` (reads only its topic, and stops there)."""

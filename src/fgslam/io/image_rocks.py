@@ -279,7 +279,7 @@ class ImageRockSource:
     def report(self):
         return self.bag.report
 
-    def ground_truth(self) -> list:
+    def ground_truth(self) -> Iterator:
         return self.bag.ground_truth()
 
     def first_of(self, cls: type):
