@@ -225,6 +225,35 @@ def test_failed_updates_leave_the_solver_usable(short_run):
     assert ate_m(short_run, tr.t, tr.T_world_base) < 0.3
 
 
+def test_after_a_cholesky_failure_qr_for_a_spell_then_cholesky_and_fix_factors_keep_their_index(short_run):
+    sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(cholesky_retry_updates=10))
+    third = len(short_run.measurements) // 3
+    out = drive(sm, short_run.measurements[:third], [_fix_at(short_run, 12.0, 14.0)])
+    assert out.outcomes[0].accepted
+    rec = sm.fixes[0]
+
+    def fix_factor_keys():
+        f = sm.solver.factors().at(rec.factor_index)
+        return None if f is None else list(f.keys())
+
+    assert fix_factor_keys() == [rec.key]
+    k = len(sm.kfs) - 1
+    g = gtsam.NonlinearFactorGraph()  # a point seen by a range only: an indeterminate system
+    g.add(gtsam.RangeFactor3D(X(k), L(99998), 3.0, gtsam.noiseModel.Isotropic.Sigma(1, 0.1)))
+    v = gtsam.Values()
+    v.insert(L(99998), sm.solver.pose(X(k))[:3, 3] + np.array([3.0, 0.0, 0.0]))
+    with pytest.raises(SolverUpdateError):
+        sm.solver.update(g, v)
+    assert sm.solver.factorization is Factorization.QR
+    assert fix_factor_keys() == [rec.key]  # the fix record follows its factor into the rebuilt solver
+    drive(sm, short_run.measurements[third:], [])
+    assert sm.solver.factorization is Factorization.CHOLESKY and sm.solver.n_cholesky_returns == 1
+    assert sm.stats().extra["n_cholesky_returns"] == 1
+    assert fix_factor_keys() == [rec.key]
+    tr = sm.trajectory()
+    assert ate_m(short_run, tr.t, tr.T_world_base) < 0.3
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 5])
 def test_consistency_nees_and_3sigma_envelope(seed):

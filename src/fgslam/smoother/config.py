@@ -125,6 +125,10 @@ class SmootherConfig:
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
     fixes: FixConfig = field(default_factory=FixConfig)
     factorization: Factorization = Factorization.CHOLESKY
+    # after Cholesky fails (an indeterminate system) the smoother runs QR for this many updates,
+    # doubled at each further failure, then Cholesky again: QR held for good made a cratered-3km
+    # run 3-4x slower (73 % of its time in QR elimination) after one failure at keyframe 5103
+    cholesky_retry_updates: PositiveInt = 200
     relinearize_threshold: NonNegative = 0.01  # keyframe poses: relinearize when |delta| (rad, m) exceeds this
     landmark_relinearize_scale: Positive = 5.0  # rock landmarks relinearize at this times the pose
     # threshold (m): each relinearized landmark re-eliminates every clique it is in, and ~500 of

@@ -91,15 +91,13 @@ class LateFixes:
             except (SolverUpdateError, RuntimeError, ValueError) as exc:
                 log.warning("could not retract fix at t=%.2f: %s", rec.fix.t_meas, exc)
                 return
-            self._remap_indices()
             rec.active = False
             rec.retracted_reason = f"retracted: residual d2 {d2[worst]:.1f} > {cfg.retract_chi2:.1f} after optimisation"
             log.info("fix at t=%.2f %s", rec.fix.t_meas, rec.retracted_reason)
 
-    def _remap_indices(self) -> None:
-        m = self.solver.take_index_map()
-        if m:
-            for r in self.fixes:
-                if r.active:
-                    r.factor_index = m.get(r.factor_index, r.factor_index)
+    def _remap_fix_factors(self, index_map: dict[int, int]) -> None:
+        """The solver was rebuilt: its factors have new indices (``Solver.on_rebuild``)."""
+        for r in self.fixes:
+            if r.active:
+                r.factor_index = index_map.get(r.factor_index, r.factor_index)
 

@@ -73,6 +73,7 @@ class Isam2Smoother(LateFixes, Backend):
             raise SmootherError("initial PoseEstimate.T_world_base has no valid rotation block")
         self.config = config or SmootherConfig()
         self.solver = Solver(self.config)
+        self.solver.on_rebuild = self._remap_fix_factors
         self.kfs = KeyframeStore()
         self.fixes: list[FixRecord] = []
         self.update_latency_s: list[float] = []  # wall time of each keyframe / fix update
@@ -219,6 +220,7 @@ class Isam2Smoother(LateFixes, Backend):
                 "n_failed_updates": self.n_failed_updates,
                 "n_recoveries": self.solver.n_recoveries,
                 "factorization": self.solver.factorization.value,
+                "n_cholesky_returns": self.solver.n_cholesky_returns,
                 **kind_counts,
                 "retracted_fixes": retracted,
                 "fix_reject_reasons": dict(self.fix_reject_reasons),

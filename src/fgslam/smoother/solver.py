@@ -13,6 +13,7 @@ poses, the calibration, and each landmark kind's own); a key of no known symbol 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -71,6 +72,12 @@ class Solver:
         self._alive: set[int] = set()
         self._new_solver()
         self.n_recoveries = 0
+        self.n_updates = 0
+        self.n_cholesky_returns = 0
+        self._qr_until: int | None = None  # after a Cholesky failure: QR until this many updates
+        self._qr_spell = cfg.cholesky_retry_updates
+        # told old -> new factor indices whenever the solver is rebuilt (fix records hold indices)
+        self.on_rebuild: Callable[[dict[int, int]], None] | None = None
 
     def _new_solver(self) -> None:
         params = _params(self.cfg, self.factorization)
@@ -180,6 +187,9 @@ class Solver:
         by time itself (newest last)."""
         remove = list(remove or [])
         self.validate(graph, values, remove)
+        if values.size() > 0:  # a keyframe (not a fix, which may be restored from a snapshot)
+            self._maybe_back_to_cholesky()
+        self.n_updates += 1
         n_before = self.factors().size()
         try:
             if self.fixed_lag:
@@ -223,34 +233,64 @@ class Solver:
     # ------------------------------------------------------------------ way back
     def snapshot(self) -> gtsam.ISAM2 | None:
         """A copy of the full-mode ISAM2 (None in fixed-lag mode, which recovers by rebuilding)."""
+        self._maps_since_snapshot = []
         return None if self.fixed_lag else gtsam.ISAM2(self.isam)
 
     def restore(self, snap: gtsam.ISAM2 | None, alive: set[int]) -> None:
-        """Go back to ``snap`` taken by :meth:`snapshot`, with the key set at that time."""
+        """Go back to ``snap`` taken by :meth:`snapshot`, with the key set at that time (and the
+        factor indices of then: ``on_rebuild`` is told the way back from any rebuild since)."""
         if snap is not None:
             self.isam = snap
             self._alive = set(alive)
+            back: dict[int, int] = {}
+            for m in getattr(self, "_maps_since_snapshot", []):  # compose snapshot -> now ...
+                back = {k: m[v] for k, v in back.items() if v in m} if back else dict(m)
+            if back and self.on_rebuild is not None:  # ... and invert it
+                self.on_rebuild({new: old for old, new in back.items()})
+            self._maps_since_snapshot = []
 
     def _recover(self, n_before: int, n_new: int, new_keys: set[int], message: str) -> None:
         """Rebuild the solver from its graph and linearization point without the failed batch."""
         self.n_recoveries += 1
         first = next((ln for ln in message.splitlines() if ln.strip()), message)
-        if "ndetermin" in message and self.factorization is Factorization.CHOLESKY:  # 4.3 spells it "Indeterminate"
-            log.warning("Cholesky failed (%s); switching the smoother to QR", first)
-            self.factorization = Factorization.QR
+        if "ndetermin" in message:  # 4.3 spells it "Indeterminate"
+            if self.factorization is Factorization.CHOLESKY:
+                log.warning("Cholesky failed (%s); switching the smoother to QR for %d updates", first, self._qr_spell)
+                self.factorization = Factorization.QR
+            else:  # QR failed as well, or Cholesky failed again soon after its return: a longer spell
+                self._qr_spell *= 2
+            if self.cfg.factorization is Factorization.CHOLESKY:
+                self._qr_until = self.n_updates + self._qr_spell
+        n = self._rebuild(n_before, new_keys)
+        log.warning("iSAM2 update failed (%s); solver rebuilt from %d factors", first, n)
+
+    def _maybe_back_to_cholesky(self) -> None:
+        """After a spell of QR (see ``SmootherConfig.cholesky_retry_updates``), rebuild with Cholesky."""
+        if self._qr_until is None or self.n_updates < self._qr_until:
+            return
+        self._qr_until = None
+        self.factorization = Factorization.CHOLESKY
+        self.n_cholesky_returns += 1
+        n = self._rebuild(self.factors().size(), set())
+        log.info("smoother back to Cholesky after %d updates of QR (rebuilt from %d factors)", self._qr_spell, n)
+
+    def _rebuild(self, n_factors: int, drop_keys: set[int]) -> int:
+        """A new solver (with the current factorization) from the first ``n_factors`` factors of
+        the graph and the linearization point, less the new keys ``drop_keys``; tells
+        ``on_rebuild`` the factors' new indices. Returns the number of factors."""
         old_graph, old_theta = self.factors(), self.theta()
         stamps = dict(self.ifls.timestamps()) if self.fixed_lag else {}
-        self._index_map = {}
+        index_map: dict[int, int] = {}
         graph = gtsam.NonlinearFactorGraph()
-        for i in range(min(n_before, old_graph.size())):
+        for i in range(min(n_factors, old_graph.size())):
             f = old_graph.at(i)
             if f is None:
                 continue
-            self._index_map[i] = graph.size()
+            index_map[i] = graph.size()
             graph.add(f)
         theta = gtsam.Values()
         for k in old_theta.keys():  # noqa: SIM118 (gtsam.Values)
-            if k not in new_keys or k in self._alive:
+            if k not in drop_keys or k in self._alive:
                 theta.insert(k, _value(old_theta, k))
         stamps = {k: t for k, t in stamps.items() if theta.exists(k)}
         self._new_solver()
@@ -260,12 +300,11 @@ class Solver:
         else:
             self.isam.update(graph, theta)
             self._alive = set(theta.keys())
-        log.warning("iSAM2 update failed (%s); solver rebuilt from %d factors", first, graph.size())
-
-    def take_index_map(self) -> dict[int, int]:
-        """Old -> new factor indices after the last recovery (empty if none happened since)."""
-        m, self._index_map = getattr(self, "_index_map", {}), {}
-        return m
+        if self.on_rebuild is not None:
+            self.on_rebuild(index_map)
+        if hasattr(self, "_maps_since_snapshot"):
+            self._maps_since_snapshot.append(index_map)
+        return graph.size()
 
 
 def _tangent_dim(key: int) -> int:
