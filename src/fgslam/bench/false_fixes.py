@@ -2,7 +2,7 @@
 landmarks are not in the catalog under it, against the bound its acceptance test claims.
 
 ``python -m fgslam.bench.false_fixes DIR [--config backend.yaml] [--backend ekf]
-[--duration-s S] [--out results.json]``: one pass of BACKEND without fixes over the
+[--duration-s S] [--kinds rocks,craters] [--out results.json]``: one pass of BACKEND without fixes over the
 ``fgslam sim`` directory DIR (the first S seconds). At every attempt of each kind's relocalizer,
 its local map (the back-end's map with the relocalizer's window of the recent path) and the
 estimate are moved, together, by the offset from the rover's true position now to the latest true
@@ -172,6 +172,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--config", type=Path)
     ap.add_argument("--backend", default="ekf")
     ap.add_argument("--duration-s", type=float)
+    ap.add_argument("--kinds", help="comma-separated landmark kinds to probe (default: every kind with a catalog)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -184,8 +185,15 @@ def main(argv: list[str] | None = None) -> dict:
     runner_cfg = check_stream(inputs, cfg.runner)
     span = float(gt.t[-1] - gt.t[0]) if args.duration_s is None else args.duration_s
     probes, bound = [], {}
-    for r in relocalizer_set(inputs, cfg):
+    relocs = relocalizer_set(inputs, cfg)
+    wanted = {r.kinds[0] for r in relocs} if args.kinds is None else set(args.kinds.split(","))
+    unknown = wanted - {r.kinds[0] for r in relocs}
+    if unknown:
+        ap.error(f"--kinds {sorted(unknown)}: {args.directory} has catalogs of {sorted(r.kinds[0] for r in relocs)} only")
+    for r in relocs:
         kind = r.kinds[0]
+        if kind not in wanted:
+            continue
         probes.append(OutOfCatalogProbe(kind, inputs.catalogs[kind], r.config, gt))
         mcfg = config_from_dict(MatcherConfig, dict(r.config.matcher or {}), where="matcher.")
         bound[kind] = 10.0 ** mcfg.max_log10_false_alarm
