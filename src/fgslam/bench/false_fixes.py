@@ -143,7 +143,10 @@ def summarize(records: list[dict], bound: Mapping[str, float]) -> dict:
         out[kind] = {
             "attempts": len(home), "fixes": len(errs),
             "fix_error_median_m": float(np.median(errs)) if errs else None,
+            "fix_error_p90_m": float(np.percentile(errs, 90)) if errs else None,
+            "fix_error_max_m": float(np.max(errs)) if errs else None,
             "fixes_over_1m": sum(1 for e in errs if e > 1.0),
+            "fixes_over_5m": sum(1 for e in errs if e > 5.0),
             "out_of_catalog_attempts": len(away),
             "out_of_catalog_tried": sum(1 for r in away if r["away"] not in ("too few landmarks",)),
             "false_fixes": false,
@@ -206,6 +209,7 @@ def main(argv: list[str] | None = None) -> dict:
     text = json.dumps(res, indent=2)
     if args.out is not None:
         args.out.write_text(text + "\n")
+        args.out.with_suffix(".records.json").write_text(json.dumps(records) + "\n")  # every attempt
     sys.stdout.write(text + "\n")
     return res
 
