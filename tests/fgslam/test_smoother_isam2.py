@@ -254,6 +254,33 @@ def test_after_a_cholesky_failure_qr_for_a_spell_then_cholesky_and_fix_factors_k
     assert ate_m(short_run, tr.t, tr.T_world_base) < 0.3
 
 
+def test_a_cholesky_return_that_fails_keeps_qr_for_a_longer_spell(short_run):
+    sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(cholesky_retry_updates=5))
+    third = len(short_run.measurements) // 3
+    drive(sm, short_run.measurements[:third], [])
+    k = len(sm.kfs) - 1
+    g = gtsam.NonlinearFactorGraph()
+    g.add(gtsam.RangeFactor3D(X(k), L(99998), 3.0, gtsam.noiseModel.Isotropic.Sigma(1, 0.1)))
+    v = gtsam.Values()
+    v.insert(L(99998), sm.solver.pose(X(k))[:3, 3] + np.array([3.0, 0.0, 0.0]))
+    with pytest.raises(SolverUpdateError):
+        sm.solver.update(g, v)
+    rebuild, calls = sm.solver._rebuild, []
+
+    def failing_once(*a, **kw):  # the first return to Cholesky meets an indeterminate window
+        calls.append(sm.solver.factorization)
+        if len(calls) == 1:
+            raise RuntimeError("Indeterminate linear system detected while working near variable")
+        return rebuild(*a, **kw)
+
+    sm.solver._rebuild = failing_once
+    drive(sm, short_run.measurements[third:], [])
+    assert calls[0] is Factorization.CHOLESKY and sm.solver._qr_spell == 10
+    assert sm.solver.n_cholesky_returns == 1 and sm.solver.factorization is Factorization.CHOLESKY
+    tr = sm.trajectory()
+    assert ate_m(short_run, tr.t, tr.T_world_base) < 0.3
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 5])
 def test_consistency_nees_and_3sigma_envelope(seed):

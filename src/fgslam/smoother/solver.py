@@ -270,8 +270,16 @@ class Solver:
             return
         self._qr_until = None
         self.factorization = Factorization.CHOLESKY
+        try:
+            n = self._rebuild(self.factors().size(), set())
+        except (RuntimeError, ValueError) as exc:  # Cholesky fails on this window too: QR, longer
+            self.factorization = Factorization.QR
+            self._qr_spell *= 2
+            self._qr_until = self.n_updates + self._qr_spell
+            first = next((ln for ln in str(exc).splitlines() if ln.strip()), str(exc))
+            log.warning("Cholesky failed again on rebuilding (%s); QR kept for %d more updates", first, self._qr_spell)
+            return
         self.n_cholesky_returns += 1
-        n = self._rebuild(self.factors().size(), set())
         log.info("smoother back to Cholesky after %d updates of QR (rebuilt from %d factors)", self._qr_spell, n)
 
     def _rebuild(self, n_factors: int, drop_keys: set[int]) -> int:
@@ -293,13 +301,18 @@ class Solver:
             if k not in drop_keys or k in self._alive:
                 theta.insert(k, _value(old_theta, k))
         stamps = {k: t for k, t in stamps.items() if theta.exists(k)}
+        before = (self.ifls, self.isam, self._alive)
         self._new_solver()
-        if self.fixed_lag:
-            self.ifls.update(graph, theta, stamps, [])
-            self._alive = set(self.ifls.timestamps().keys())
-        else:
-            self.isam.update(graph, theta)
-            self._alive = set(theta.keys())
+        try:
+            if self.fixed_lag:
+                self.ifls.update(graph, theta, stamps, [])
+                self._alive = set(self.ifls.timestamps().keys())
+            else:
+                self.isam.update(graph, theta)
+                self._alive = set(theta.keys())
+        except (RuntimeError, ValueError):  # the rebuilt system failed too: the solver as it was
+            self.ifls, self.isam, self._alive = before
+            raise
         if self.on_rebuild is not None:
             self.on_rebuild(index_map)
         if hasattr(self, "_maps_since_snapshot"):
