@@ -109,6 +109,7 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
     from fgslam.fix_sources import NoFixes, OnlineFixes, relocalizers_for
     from fgslam.inputs import load_sim_dir, truth_of
     from fgslam.metrics import ate
+    from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for
     from fgslam.runner import run_backend
 
     directory = Path(directory)
@@ -125,7 +126,12 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         for i, r in enumerate(producers):
             if r.kinds == ("craters",):
                 counted = producers[i] = _CountingRelocalizer(r, inputs.catalogs["craters"], gt, cfg)
-        be = make_backend(cfg.backend, inputs.initial, _overrides(directory, cfg.backend, craters_used))
+        span = cfg.duration_s if cfg.duration_s is not None else (float(gt.t[-1] - gt.t[0]) if gt is not None else float("nan"))
+        # the long-traverse defaults as `fgslam run` gets them (fixed-lag iSAM2 beyond 30 min: a
+        # 4000 s stretch in full mode ran at 1.4x real time)
+        overrides = backend_overrides_for(cfg.backend, _overrides(directory, cfg.backend, craters_used), span,
+                                          LongTraverseConfig())
+        be = make_backend(cfg.backend, inputs.initial, overrides)
         res = run_backend(be, _stretch(inputs.measurements, cfg.duration_s),
                           OnlineFixes(producers) if producers else NoFixes())
         row: dict = {"ate_rmse_m": ate(res.final, gt).rmse, "wall_s": res.wall_s,
