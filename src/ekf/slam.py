@@ -382,12 +382,11 @@ class EkfSlam(Backend):
 
     def _record(self) -> None:
         s, period = self._s, self.config.trajectory_period_s
+        last = self._traj.last() if len(self._traj) else None
+        if last is not None and last[0] != s.t and period > 0 and s.t - last[0] < period - _T_EPS:
+            return  # (checked before the row is built: this runs at every step)
         row = np.concatenate(([s.t], self._T().ravel(), s.P[:POSE_DIM, :POSE_DIM].ravel()))
-        if len(self._traj):
-            last = self._traj.last()
-            if last[0] == s.t:
-                last[:] = row
-                return
-            if period > 0 and s.t - last[0] < period - _T_EPS:
-                return
-        self._traj.append(row)
+        if last is not None and last[0] == s.t:
+            last[:] = row
+        else:
+            self._traj.append(row)

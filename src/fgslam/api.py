@@ -56,13 +56,13 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
     from fgslam.compare import relocalizer_set, run_key, run_metrics
     from fgslam.fix_sources import NoFixes, OnlineFixes
     from fgslam.inputs import check_stream, truth_of
-    from fgslam.long_traverse import backend_overrides_for, stream_span_s
+    from fgslam.long_traverse import backend_overrides_for, run_span_s
     from fgslam.runner import run_backend
     from reloc.config import config_to_dict
 
     runner_cfg = check_stream(inputs, cfg.runner)
     gt = truth_of(inputs)
-    span = gt.t[-1] - gt.t[0] if gt is not None and len(gt) else stream_span_s(inputs.measurements)
+    span = run_span_s(gt, inputs.measurements)
     be = make_backend(backend, inputs.initial,  # bounded back-ends on a long traverse (fgslam.long_traverse)
                       backend_overrides_for(backend, cfg.backend_overrides.get(backend), span, cfg.long_traverse))
     relocs = relocalizer_set(inputs, cfg) if reloc else []

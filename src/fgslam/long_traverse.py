@@ -55,6 +55,16 @@ def stream_span_s(measurements) -> float:
     return float("nan")
 
 
+def run_span_s(truth, measurements, duration_s: float | None = None) -> float:
+    """Span (s) a run covers, for the long-traverse decision: ``duration_s`` when the run is cut
+    to it, else the ground truth's span, else the stream's (:func:`stream_span_s`)."""
+    if duration_s is not None:
+        return float(duration_s)
+    if truth is not None and len(truth):
+        return float(truth.t[-1] - truth.t[0])
+    return stream_span_s(measurements)
+
+
 def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: float) -> None:
     """Raise LongTraverseError unless the window holds a fix ``worst_latency_s`` late with
     ``margin_s`` to spare (the smoother's ``fixes.window_margin_s``)."""

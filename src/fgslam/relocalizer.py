@@ -38,9 +38,25 @@ from reloc.measurements import GlobalFix, RockCatalog
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "FixAttempt", "Relocalizer", "RelocalizerConfig", "RelocalizerError", "fix_from_similarity",
+    "FixAttempt", "Relocalizer", "RelocalizerConfig", "RelocalizerError", "StaleMapCheck", "fix_from_similarity",
     "rover_weighted_fit", "select_local_map",
 ]
+
+
+class StaleMapCheck:
+    """Whether fewer than ``min_new`` landmark observations joined a map since the previous look
+    (never at the first one; ``min_new`` 0: never); it remembers each map's counts for the next."""
+
+    def __init__(self, min_new: int) -> None:
+        self.min_new = min_new
+        self._last: dict[int, int] | None = None  # landmark id -> observations, at the last look
+
+    def stale(self, lmap: LandmarkMap) -> bool:
+        counts = dict(zip(lmap.ids.tolist(), lmap.n_obs.tolist()))
+        last, self._last = self._last, counts
+        if last is None or self.min_new == 0:
+            return False
+        return sum(n - last.get(i, 0) for i, n in counts.items() if n > last.get(i, 0)) < self.min_new
 
 
 @dataclass(frozen=True)
@@ -95,7 +111,7 @@ class Relocalizer:
         self._fit_floor_sigma_m = float(getattr(mc, "fit_floor_sigma_m", 0.0))
         self._fix_times: list[float] = []
         self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
-        self._last_n_obs: dict[int, int] | None = None  # landmark id -> observations, at the last attempt
+        self._fresh = StaleMapCheck(self.config.min_new_observations)
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
@@ -130,7 +146,7 @@ class Relocalizer:
         cfg = self.config
         est_xyyaw = np.array([est.position_m[0], est.position_m[1], est.yaw_rad])
         self._last_xyyaw = est_xyyaw
-        if self._stale(lmap):
+        if self._fresh.stale(lmap):
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
         if self.window is not None:  # with the landmarks the back-end dropped on the recent path
             lmap = self.window.update(lmap, est.position_m)
@@ -184,16 +200,6 @@ class Relocalizer:
         self._fix_times.append(est.t)
         np.add.at(self._rock_uses, np.unique(pairs[:, 1]), 1)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
-
-    def _stale(self, lmap: LandmarkMap) -> bool:
-        """Whether fewer than ``min_new_observations`` observations joined ``lmap`` since the last
-        attempt (never for the first one); remembers the map's counts for the next."""
-        counts = dict(zip(lmap.ids.tolist(), lmap.n_obs.tolist()))
-        last, self._last_n_obs = self._last_n_obs, counts
-        if last is None or self.config.min_new_observations == 0:
-            return False
-        new = sum(n - last.get(i, 0) for i, n in counts.items() if n > last.get(i, 0))
-        return new < self.config.min_new_observations
 
     def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
         """Match against the catalog rocks that can hold the map under ``prior``; returns the

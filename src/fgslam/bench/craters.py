@@ -108,8 +108,8 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
     from fgslam.backends.registry import make_backend
     from fgslam.fix_sources import NoFixes, OnlineFixes, relocalizers_for
     from fgslam.inputs import load_sim_dir, truth_of
+    from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for, run_span_s
     from fgslam.metrics import ate
-    from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for
     from fgslam.runner import run_backend
 
     directory = Path(directory)
@@ -126,7 +126,7 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         for i, r in enumerate(producers):
             if r.kinds == ("craters",):
                 counted = producers[i] = _CountingRelocalizer(r, inputs.catalogs["craters"], gt, cfg)
-        span = cfg.duration_s if cfg.duration_s is not None else (float(gt.t[-1] - gt.t[0]) if gt is not None else float("nan"))
+        span = run_span_s(gt, inputs.measurements, cfg.duration_s)
         # the long-traverse defaults as `fgslam run` gets them (fixed-lag iSAM2 beyond 30 min: a
         # 4000 s stretch in full mode ran at 1.4x real time)
         overrides = backend_overrides_for(cfg.backend, _overrides(directory, cfg.backend, craters_used), span,

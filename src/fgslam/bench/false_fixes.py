@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from fgslam.local_window import LocalMapWindow
-from fgslam.relocalizer import FixAttempt
+from fgslam.relocalizer import FixAttempt, StaleMapCheck
 from reloc.backend import LandmarkMap, PoseEstimate, Trajectory
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ class OutOfCatalogProbe:
         step = max(1, int(len(self.truth_t) / max(self.truth_t[-1] - self.truth_t[0], 1e-9)))  # ~1 Hz for the search
         self._past_t, self._past_xy = self.truth_t[::step], self.truth_xy[::step]
         self.records: list[dict] = []
-        self._last_n_obs: dict[int, int] | None = None
+        self._fresh = StaleMapCheck(config.min_new_observations)  # as the relocalizer checks its map
 
     def wants(self, est: PoseEstimate) -> bool:
         return self.home.wants(est)
@@ -72,18 +72,11 @@ class OutOfCatalogProbe:
     def _true_xy(self, t: float) -> np.ndarray:
         return np.array([np.interp(t, self.truth_t, self.truth_xy[:, i]) for i in (0, 1)])
 
-    def _stale(self, lmap: LandmarkMap) -> bool:
-        counts = dict(zip(lmap.ids.tolist(), lmap.n_obs.tolist()))
-        last, self._last_n_obs = self._last_n_obs, counts
-        if last is None or self.config.min_new_observations == 0:
-            return False
-        return sum(n - last.get(i, 0) for i, n in counts.items() if n > last.get(i, 0)) < self.config.min_new_observations
-
     def attempt(self, maps: Mapping[str, LandmarkMap], est: PoseEstimate) -> FixAttempt:
         kind = self.kinds[0]
         lmap = maps[kind]
         rec: dict = {"t": float(est.t), "kind": kind}
-        if self._stale(lmap):
+        if self._fresh.stale(lmap):
             rec["skipped"] = "stale map"
             self.records.append(rec)
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, source=kind)
@@ -165,7 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
     from fgslam.config_file import load_compare_config
     from fgslam.fix_sources import OnlineFixes
     from fgslam.inputs import check_stream, load_sim_dir, truth_of
-    from fgslam.long_traverse import backend_overrides_for
+    from fgslam.long_traverse import backend_overrides_for, run_span_s
     from fgslam.runner import run_backend
     from reloc.config import config_from_dict
     from reloc.matcher import MatcherConfig
@@ -186,7 +179,7 @@ def main(argv: list[str] | None = None) -> dict:
     if gt is None:
         raise SystemExit(f"{args.directory}: no ground truth in the bag: out-of-catalog places come from it")
     runner_cfg = check_stream(inputs, cfg.runner)
-    span = float(gt.t[-1] - gt.t[0]) if args.duration_s is None else args.duration_s
+    span = run_span_s(gt, inputs.measurements, args.duration_s)
     probes, bound = [], {}
     relocs = relocalizer_set(inputs, cfg)
     wanted = {r.kinds[0] for r in relocs} if args.kinds is None else set(args.kinds.split(","))

@@ -92,14 +92,14 @@ class Isam2Smoother(LateFixes, Backend):
         graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(initial.T_world_base), prior))
         values = gtsam.Values()
         values.insert(X(k), gtsam.Pose3(initial.T_world_base))
-        self._stamps[X(k)] = self._stamp(initial.t)
+        self._stamps[X(k)] = stamp0 = self._stamp(initial.t)
         cal = self.config.calibration
         self.calibrated = cal.enabled
         if self.calibrated:  # C(0): rotation error (3) and scale - 1 of the rock measurements
             sig = np.maximum(cal.prior_sigmas(), 1e-6)  # (a sigma of 0: held at 0 by a stiff prior)
             graph.add(gtsam.PriorFactorVector(C(0), np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sig)))
             values.insert(C(0), np.zeros(4))
-        self.solver.update(graph, values, {X(k): self._stamp(initial.t)})
+        self.solver.update(graph, values, {X(k): stamp0})
         self.kinds = SmootherKinds(self.config, C(0) if self.calibrated else None)
         self.acc = OdometryAccumulator(initial.t)
         self.segments: dict[int, OdometryAccumulator] = {k: self.acc}

@@ -78,6 +78,7 @@ class Solver:
         self._qr_spell = cfg.cholesky_retry_updates
         # told old -> new factor indices whenever the solver is rebuilt (fix records hold indices)
         self.on_rebuild: Callable[[dict[int, int]], None] | None = None
+        self._maps_since_snapshot: list[dict[int, int]] | None = None  # rebuilds since snapshot()
 
     def _new_solver(self) -> None:
         params = _params(self.cfg, self.factorization)
@@ -243,11 +244,11 @@ class Solver:
             self.isam = snap
             self._alive = set(alive)
             back: dict[int, int] = {}
-            for m in getattr(self, "_maps_since_snapshot", []):  # compose snapshot -> now ...
+            for m in self._maps_since_snapshot or []:  # compose snapshot -> now ...
                 back = {k: m[v] for k, v in back.items() if v in m} if back else dict(m)
             if back and self.on_rebuild is not None:  # ... and invert it
                 self.on_rebuild({new: old for old, new in back.items()})
-            self._maps_since_snapshot = []
+        self._maps_since_snapshot = None
 
     def _recover(self, n_before: int, n_new: int, new_keys: set[int], message: str) -> None:
         """Rebuild the solver from its graph and linearization point without the failed batch."""
@@ -315,7 +316,7 @@ class Solver:
             raise
         if self.on_rebuild is not None:
             self.on_rebuild(index_map)
-        if hasattr(self, "_maps_since_snapshot"):
+        if self._maps_since_snapshot is not None:
             self._maps_since_snapshot.append(index_map)
         return graph.size()
 
