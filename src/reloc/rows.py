@@ -47,6 +47,8 @@ class RowBuffer:
         """Keep the first ``n`` rows."""
         if not 0 <= n <= len(self):
             raise IndexError(f"cannot truncate a RowBuffer of {len(self)} rows to {n}")
+        if n == len(self):  # nothing to cut (and the current block may be full: n // block
+            return          # would then point one block past it)
         k, r = divmod(n, self.block)
         if k < len(self._full):
             self._cur = self._full[k]

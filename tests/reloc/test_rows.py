@@ -48,3 +48,16 @@ def test_row_buffer_refuses_bad_lengths():
         buf.truncate(1)
     with pytest.raises(ValueError):
         RowBuffer(0)
+
+
+@pytest.mark.parametrize("block", [1, 2, 4])
+def test_truncating_to_the_whole_length_keeps_every_row(block):
+    """A buffer whose current block is full, cut to its own length (a rollback with nothing after
+    the restored step), keeps all its rows."""
+    buf = RowBuffer(2, block=block)
+    rows = np.arange(2.0 * 2 * block).reshape(-1, 2)
+    buf.extend(rows)
+    buf.truncate(len(buf))
+    np.testing.assert_array_equal(buf.array(), rows)
+    buf.append([-1.0, -2.0])
+    assert len(buf) == len(rows) + 1 and buf.last().tolist() == [-1.0, -2.0]
