@@ -18,6 +18,7 @@ An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from fgslam.errors import FgslamError
 from reloc.config import Positive, checked
@@ -34,6 +35,9 @@ class LongTraverseConfig:
 
     min_duration_s: Positive = 1800.0  # streams longer than this (s) are long traverses
     isam2_fixed_lag_s: Positive = 120.0  # iSAM2's fixed-lag window (s) on a long traverse
+    # iSAM2's stereo calibration on a long traverse: its prior considered in each measurement's
+    # covariance instead of a variable on every rock factor (SmootherConfig.calibration_mode)
+    isam2_calibration_mode: Literal["estimate", "consider"] = "consider"
     # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
     # rock that far is behind a rover that does not come back
     ekf_forget_distance_m: Positive = 40.0
@@ -77,9 +81,9 @@ def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: floa
 def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
                           cfg: LongTraverseConfig) -> dict | None:
     """The overrides back-end ``name`` runs with on a stream of ``duration_s``: on a long
-    traverse iSAM2 gets ``fixed_lag_s`` and the EKF ``forget_distance_m`` and
+    traverse iSAM2 gets ``fixed_lag_s`` and ``calibration_mode`` and the EKF ``forget_distance_m`` and
     ``trajectory_period_s``, each unless the overrides set it; otherwise unchanged."""
-    defaults = {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s},
+    defaults = {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s, "calibration_mode": cfg.isam2_calibration_mode},
                 "ekf": {"forget_distance_m": cfg.ekf_forget_distance_m,
                         "trajectory_period_s": cfg.ekf_trajectory_period_s}}.get(name)
     if defaults is None or not duration_s > cfg.min_duration_s:

@@ -112,6 +112,7 @@ class Relocalizer:
         self._fix_times: list[float] = []
         self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
         self._fresh = StaleMapCheck(self.config.min_new_observations)
+        self._misses = 0  # consecutive attempts that matched nothing (the period's backoff)
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
@@ -120,8 +121,13 @@ class Relocalizer:
 
     @property
     def period_s(self) -> float:
-        """Stream time between attempts."""
-        return self.config.period_s
+        """Stream time between attempts: ``period_s``, doubled per miss beyond ``backoff_after``
+        consecutive ones, at most ``backoff_max_period_s`` (see :class:`RelocalizerConfig`)."""
+        cfg = self.config
+        extra = self._misses - cfg.backoff_after
+        if cfg.backoff_after == 0 or extra < 0:
+            return cfg.period_s
+        return min(cfg.period_s * 2.0 ** min(extra + 1, 30), max(cfg.backoff_max_period_s, cfg.period_s))
 
     def wants(self, est: PoseEstimate) -> bool:
         """Whether an attempt at ``est`` is worth making: the rover has moved ``min_travel_m`` or
@@ -140,6 +146,10 @@ class Relocalizer:
         if lmap.kind != self.kinds[0]:
             raise RelocalizerError(f"the {self.kinds[0]} relocalizer was given a map of {lmap.kind!r}")
         att = self._attempt(lmap, est)
+        if att.status == "fix":
+            self._misses = 0
+        elif att.status.startswith(("no match", "bad scale")):
+            self._misses += 1
         return att if att.source else dataclasses.replace(att, source=self.kinds[0])
 
     def _attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:

@@ -48,6 +48,13 @@ class RelocalizerConfig:
     # a map the rover has not seen lately (camera blackout) places the rover by odometry only, so
     # its match would be a confident fix of a dead-reckoned pose (docs/sim.md, "Faults"); 0: off
     min_new_observations: NonNegativeInt = 3
+    # Backoff: after backoff_after consecutive attempts that matched nothing ("no match", "bad
+    # scale": the attempts that cost a search), each further one doubles the period, up to
+    # backoff_max_period_s; a fix resets it. A catalog that cannot hold this kind's map here costs
+    # a search every period for nothing (rocks at HiRISE scale, rocky-1km: 0 fixes in 757
+    # attempts, ~0.5 s each; docs/app.md "Attempt backoff"); 0: off
+    backoff_after: NonNegativeInt = 10
+    backoff_max_period_s: Positive = 30.0
     min_turn_deg: NonNegative = 3.0
     latency: Literal["fixed", "measured"] = "fixed"  # "fixed": t_recv = t_meas + delay_s; "measured": + matching wall time
     delay_s: NonNegative = 2.0

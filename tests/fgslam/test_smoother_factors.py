@@ -249,3 +249,20 @@ def test_fix_yaw_sigma_floor_raises_only_the_yaw_and_keeps_correlations():
     assert floored[0, 2] / np.sqrt(floored[0, 0] * floored[2, 2]) == pytest.approx(cov[0, 2] / np.sqrt(cov[0, 0] * cov[2, 2]))
     _, above = place_fix(fix, X(0), np.eye(4), np.zeros((6, 6)), T, 2.0, yaw_sigma_floor_rad=0.001)
     np.testing.assert_allclose(above, cov, atol=1e-12)  # a floor below the fix's sigma changes nothing
+
+
+def test_considered_calibration_covariance_is_the_spread_of_calibrated_points():
+    """calibration_cov is the covariance of (1 + s) Exp(w) z over calibrations c = (w, s) drawn
+    from its prior (small rotations: first order holds to < 1 %)."""
+    from fgslam.smoother.factors import calibration_cov
+
+    rng = np.random.default_rng(5)
+    z = np.array([[12.0, -3.0, -0.8], [4.0, 6.0, -0.9]])
+    sig = np.array([0.002, 0.002, np.deg2rad(0.15), 0.003])
+    c = rng.normal(size=(200_000, 4)) * sig
+    R = Rotation.from_rotvec(c[:, :3]).as_matrix()
+    for i, zi in enumerate(z):
+        h = (1.0 + c[:, 3])[:, None] * (R @ zi)
+        want = calibration_cov(z, np.diag(sig**2))[i]
+        np.testing.assert_allclose(np.cov(h.T), want, rtol=0.0, atol=0.02 * np.abs(want).max())  # MC: ~0.3 %
+

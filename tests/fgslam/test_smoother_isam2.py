@@ -438,3 +438,39 @@ def test_fixes_on_the_newest_and_older_keyframes_all_update(short_run):
             out = sm.apply_fix(_fix_at(short_run, t_meas, sm.acc.t_now, sigma_m=0.2))
             assert out.accepted, out.reason
     assert sm.stats().extra["n_failed_updates"] == 0
+
+
+def test_consider_mode_has_no_calibration_variable_and_wider_rock_factors(short_run):
+    """calibration_mode "consider": no C(0) in the solver, every rock factor a C++ one."""
+    from reloc.calibration import CalibrationConfig
+
+    cal = CalibrationConfig(yaw_sigma_deg=0.15, scale_sigma=0.003)
+    sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(calibration=cal, calibration_mode="consider"))
+    drive(sm, short_run.measurements[:3000], [])
+    graph = sm.solver.factors()
+    kinds = {type(graph.at(i)).__name__ for i in range(graph.size()) if graph.at(i) is not None}
+    assert "CustomFactor" not in kinds and "BearingRangeFactor3D" in kinds
+    assert not sm.solver.alive(gtsam.symbol("c", 0)) and sm.calibration() == {}
+
+
+def test_a_marginalizing_keyframe_takes_its_predicted_covariance_an_upper_bound(short_run):
+    """Fixed-lag: after an update that marginalized keys, the newest keyframe's covariance is its
+    prediction from the previous keyframe, never below its marginal; other updates keep the marginal."""
+    sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(fixed_lag_s=10.0, marginalize_every_s=4.0))
+    seen = []
+    refresh = sm._refresh_latest
+
+    def spy(cov=None):
+        refresh(cov)
+        k = len(sm.kfs) - 1
+        seen.append((cov is not None, sm.cov_kf.copy(), sm.solver.marginal_cov(X(k))))
+
+    sm._refresh_latest = spy
+    drive(sm, short_run.measurements, [])
+    predicted = [(c, m) for p, c, m in seen if p]
+    assert 5 <= len(predicted) <= len(seen) / 3
+    for c, m in predicted:
+        # an upper bound (to the relinearization between the two: 1e-3 of the marginal's scale)
+        assert np.linalg.eigvalsh(c - m).min() > -1e-3 * np.linalg.eigvalsh(m).max()
+        assert np.trace(c) < 3.0 * np.trace(m)  # and a close one (one keyframe's odometry)
+    assert all(np.allclose(c, m) for p, c, m in seen if not p)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Literal
 
 from fgslam.errors import SmootherError
 from reloc.association import AssociationConfig
@@ -147,10 +148,25 @@ class SmootherConfig:
     marginalize_every_s: NonNegative = 5.0
     frozen_marginals: bool = False  # fixed-lag: marginal covariance of a keyframe as it leaves the
     # window (~1 ms each) instead of its causal covariance (an upper bound)
+    # fixed-lag: the newest keyframe's covariance after an update that marginalized keys is its
+    # prediction (the previous keyframe's marginal moved by the odometry between them: an upper
+    # bound, as the estimate between keyframes) instead of its marginal. GTSAM's fixed-lag
+    # smoother re-orders the tree with the leaving keys first and leaves the newest keyframe
+    # wherever COLAMD puts it, so its marginal went through a long shortcut: 188 ms of the
+    # slowest keyframes' 220 (rocky-1km, window 120 s; docs/smoother.md, "Fixed-lag cost")
+    predicted_cov_when_marginalizing: bool = True
     snapshot_before_fixes: bool = True  # full mode: copy ISAM2 (~ms) before fix updates and retractions
     # stereo calibration variable C(0) (rotation error, scale) with this prior, on every rock
     # factor (then a Python factor, ~25 us per linearization instead of the C++ one)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    # how an enabled calibration enters: "estimate", the variable C(0) above; "consider", no
+    # variable: the prior's effect on each measurement (J_c Sigma_c J_c^T, J_c = [-[z]x, z]) is
+    # added to its covariance and the factors stay C++. Fixed-lag marginalization re-linearizes
+    # every factor of the window (GTSAM takes the batch path when most of the tree is re-eliminated),
+    # so with C(0) each one cost ~100 ms of Python on rocky-1km (lag 30 s, first 600 s: 30.3 ->
+    # 16.3 s, keyframe p99 164 -> 63 ms, ATE 0.192 -> 0.173 m; C(0) had learned yaw 0.15 -> 0.12
+    # deg sigma). Long traverses default to "consider" (fgslam.long_traverse)
+    calibration_mode: Literal["estimate", "consider"] = "estimate"
     # settings of the other landmark kinds' smoother layers, by kind name (each layer declares its
     # config class; the rock settings are ``landmarks``), see fgslam.smoother.kinds
     kinds: dict = field(default_factory=dict)

@@ -161,6 +161,17 @@ def calibrated_point_residual(
     return sc * y - z_kf, H_pose, sc * E @ R.T, H_c
 
 
+def calibration_cov(z: np.ndarray, cov_c: np.ndarray) -> np.ndarray:
+    """(n, 3, 3): the covariance that calibration ``c`` ~ N(0, ``cov_c`` (4, 4)) adds to points
+    ``z`` (n, 3) seen in base_link, ``J_c cov_c J_c^T`` with ``J_c = [-[z]x, z]`` (the Jacobian
+    of :func:`calibrated_point_residual` at ``c = 0``)."""
+    z = np.asarray(z, dtype=float).reshape(-1, 3)
+    J = np.empty((len(z), 3, 4))
+    J[:, :, :3] = -skew(z)
+    J[:, :, 3] = z
+    return J @ cov_c @ np.swapaxes(J, 1, 2)
+
+
 def make_calibrated_point_factor(
     pose_key: int, point_key: int, calib_key: int, z_kf: np.ndarray, cov_kf: np.ndarray, huber_k: float
 ) -> gtsam.CustomFactor:

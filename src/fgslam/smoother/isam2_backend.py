@@ -94,7 +94,7 @@ class Isam2Smoother(LateFixes, Backend):
         values.insert(X(k), gtsam.Pose3(initial.T_world_base))
         self._stamps[X(k)] = stamp0 = self._stamp(initial.t)
         cal = self.config.calibration
-        self.calibrated = cal.enabled
+        self.calibrated = cal.enabled and self.config.calibration_mode == "estimate"  # "consider": no C(0)
         if self.calibrated:  # C(0): rotation error (3) and scale - 1 of the rock measurements
             sig = np.maximum(cal.prior_sigmas(), 1e-6)  # (a sigma of 0: held at 0 by a stiff prior)
             graph.add(gtsam.PriorFactorVector(C(0), np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sig)))
@@ -264,8 +264,7 @@ class Isam2Smoother(LateFixes, Backend):
             full_stamps.update(layer.buffered_stamps(ts))
         if self.solver.fixed_lag and self.calibrated:
             stamps[C(0)] = full_stamps[C(0)] = ts  # every rock factor uses it: it never leaves the window
-        if self.solver.fixed_lag:
-            self._before_marginalization(ts, full_stamps)
+        marginalizing = self.solver.fixed_lag and self._before_marginalization(ts, full_stamps)
         try:
             self._timed_update(graph, full_vals, full_stamps)
             self._stamps.update(full_stamps)
@@ -281,25 +280,31 @@ class Isam2Smoother(LateFixes, Backend):
         self._buf_values = gtsam.Values()
         for layer in self.kinds.used():
             layer.on_keyframe()
+        predicted = None
+        if marginalizing and self.config.predicted_cov_when_marginalizing:
+            Ad = adjoint(inverse(acc.T_kf_now))
+            predicted = Ad @ self.cov_kf @ Ad.T + acc.cov
         self.acc = OdometryAccumulator(t)
         self.segments[k] = self.acc
         self._prune_history(t)
-        self._refresh_latest()
+        self._refresh_latest(predicted)
 
     def _stamp(self, t: float) -> float:
         """The fixed-lag timestamp of a key made at ``t`` (see ``SmootherConfig.marginalize_every_s``)."""
         every = self.config.marginalize_every_s
         return float(np.floor(t / every) * every) if every > 0 else float(t)
 
-    def _before_marginalization(self, t: float, new_stamps: dict[int, float]) -> None:
+    def _before_marginalization(self, t: float, new_stamps: dict[int, float]) -> bool:
         """Fixed-lag: freeze the estimates of keys that the coming update (newest stamp ``t``)
-        will marginalize: those stamped before ``t - fixed_lag_s``."""
+        will marginalize: those stamped before ``t - fixed_lag_s``. Whether there are any."""
         horizon = t - self.config.fixed_lag_s
         stamps = dict(self._stamps)
         stamps.update(new_stamps)
+        leaving = False
         for key, ts in stamps.items():
             if ts >= horizon or not self.solver.alive(key):
                 continue
+            leaving = True
             i = int(gtsam.Symbol(key).index())
             if symbol_of(key) == POSE_SYMBOL:
                 T = self.solver.pose(key)
@@ -314,6 +319,7 @@ class Isam2Smoother(LateFixes, Backend):
         oldest = self.kfs.before(horizon + self.config.fixes.window_margin_s) + 1
         for layer in self.kinds.used():
             layer.prune(t, oldest)
+        return leaving
 
     def _prune_history(self, t: float) -> None:
         """Drop odometry history older than fixes may be (bounded memory)."""
@@ -323,12 +329,13 @@ class Isam2Smoother(LateFixes, Backend):
             for layer in self.kinds.used():
                 layer.prune(t, 0)
 
-    def _refresh_latest(self) -> None:
-        """Cache the newest keyframe's estimate/marginal, record the causal estimate, and let each
-        landmark kind pull the solver's estimates near the rover."""
+    def _refresh_latest(self, cov: np.ndarray | None = None) -> None:
+        """Cache the newest keyframe's estimate and marginal (or ``cov``, GTSAM tangent, when
+        given), record the causal estimate, and let each landmark kind pull the solver's
+        estimates near the rover."""
         k = len(self.kfs) - 1
         self.T_kf = self.solver.pose(X(k))
-        self.cov_kf = self.solver.marginal_cov(X(k))
+        self.cov_kf = self.solver.marginal_cov(X(k)) if cov is None else cov
         if len(self.kfs.online_T) <= k:
             self.kfs.record_online(self.T_kf, cov_gtsam_to_world(self.T_kf[:3, :3], self.cov_kf))
         for layer in self.kinds.used():

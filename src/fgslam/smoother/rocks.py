@@ -14,7 +14,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from fgslam.smoother.factors import make_calibrated_point_factor, make_point_factor
+from fgslam.smoother.factors import calibration_cov, make_calibrated_point_factor, make_point_factor
 from fgslam.smoother.kinds import POINT3, KeyframeFrame
 from fgslam.smoother.landmarks import ACTIVE, LandmarkStore
 from reloc.backend import LandmarkMap, LandmarkUpdateReport
@@ -33,6 +33,10 @@ class RockLandmarks:
         self.kind = kind.name
         self.symbol = kind.symbol
         self.calib_key = calib_key
+        cal = config.calibration
+        # "consider": the calibration prior's effect on each measurement joins its covariance
+        self._consider_cov = (np.diag(cal.prior_sigmas() ** 2)
+                              if cal.enabled and calib_key is None and config.calibration_mode == "consider" else None)
         self.store = LandmarkStore(self.cfg)
         self.n_frames = self.n_frames_skipped = 0
         self._last_frame_t = -np.inf
@@ -55,6 +59,8 @@ class RockLandmarks:
         R_rel = T_rel[:3, :3]
         z = np.asarray(obs.xyz_base_m)
         Rz = np.asarray(obs.cov_base_m2) * self.cfg.rock_cov_scale
+        if self._consider_cov is not None:
+            Rz = Rz + calibration_cov(z, self._consider_cov)
         # the observation moved onto the keyframe through the odometry since it
         z_kf = z @ R_rel.T + T_rel[:3, 3]
         J = np.zeros((n, 3, 6))
