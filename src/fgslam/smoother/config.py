@@ -167,6 +167,10 @@ class SmootherConfig:
     # 16.3 s, keyframe p99 164 -> 63 ms, ATE 0.192 -> 0.173 m; C(0) had learned yaw 0.15 -> 0.12
     # deg sigma). Long traverses default to "consider" (fgslam.long_traverse)
     calibration_mode: Literal["estimate", "consider"] = "estimate"
+    # "consider": the calibration's covariance term is multiplied by this. One calibration error
+    # is common to every observation, which the factors take as independent: a rock seen from n
+    # keyframes would average it down by n
+    calibration_consider_scale: Positive = 1.0
     # settings of the other landmark kinds' smoother layers, by kind name (each layer declares its
     # config class; the rock settings are ``landmarks``), see fgslam.smoother.kinds
     kinds: dict = field(default_factory=dict)

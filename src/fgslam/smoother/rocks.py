@@ -35,7 +35,7 @@ class RockLandmarks:
         self.calib_key = calib_key
         cal = config.calibration
         # "consider": the calibration prior's effect on each measurement joins its covariance
-        self._consider_cov = (np.diag(cal.prior_sigmas() ** 2)
+        self._consider_cov = (config.calibration_consider_scale * np.diag(cal.prior_sigmas() ** 2)
                               if cal.enabled and calib_key is None and config.calibration_mode == "consider" else None)
         self.store = LandmarkStore(self.cfg)
         self.n_frames = self.n_frames_skipped = 0
