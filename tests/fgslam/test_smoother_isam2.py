@@ -440,7 +440,7 @@ def test_fixes_on_the_newest_and_older_keyframes_all_update(short_run):
     assert sm.stats().extra["n_failed_updates"] == 0
 
 
-def test_consider_mode_has_no_calibration_variable_and_wider_rock_factors(short_run):
+def test_consider_mode_has_no_calibration_variable_and_only_cpp_rock_factors(short_run):
     """calibration_mode "consider": no C(0) in the solver, every rock factor a C++ one."""
     from reloc.calibration import CalibrationConfig
 

@@ -163,9 +163,10 @@ class SmootherConfig:
     # variable: the prior's effect on each measurement (J_c Sigma_c J_c^T, J_c = [-[z]x, z]) is
     # added to its covariance and the factors stay C++. Fixed-lag marginalization re-linearizes
     # every factor of the window (GTSAM takes the batch path when most of the tree is re-eliminated),
-    # so with C(0) each one cost ~100 ms of Python on rocky-1km (lag 30 s, first 600 s: 30.3 ->
-    # 16.3 s, keyframe p99 164 -> 63 ms, ATE 0.192 -> 0.173 m; C(0) had learned yaw 0.15 -> 0.12
-    # deg sigma). Long traverses default to "consider" (fgslam.long_traverse)
+    # so with C(0) each one cost ~100 ms of Python (rocky-1km, first 600 s, window 120 s: estimate
+    # -> consider 43.2 -> 28.3 s, keyframe p99 752 -> 173 ms, ATE 0.242 -> 0.206 m, position NEES
+    # 1.92 -> 4.05, slightly optimistic; C(0) had learned yaw 0.15 -> 0.12 deg sigma in 600 s).
+    # Long traverses default to "consider" (fgslam.long_traverse)
     calibration_mode: Literal["estimate", "consider"] = "estimate"
     # "consider": the calibration's covariance term is multiplied by this. One calibration error
     # is common to every observation, which the factors take as independent: a rock seen from n

@@ -161,9 +161,12 @@ class Isam2Smoother(LateFixes, Backend):
     def estimate(self) -> PoseEstimate:
         """Latest pose: keyframe estimate composed with the odometry since, covariance propagated."""
         T = self.T_kf @ self.acc.T_kf_now
-        Ad = adjoint(inverse(self.acc.T_kf_now))
-        C = Ad @ self.cov_kf @ Ad.T + self.acc.cov
-        return PoseEstimate(self.acc.t_now, T, cov_gtsam_to_world(T[:3, :3], C))
+        return PoseEstimate(self.acc.t_now, T, cov_gtsam_to_world(T[:3, :3], self._predicted_cov(self.acc)))
+
+    def _predicted_cov(self, acc: OdometryAccumulator) -> np.ndarray:
+        """The newest keyframe's marginal moved through the odometry ``acc`` since it (GTSAM tangent)."""
+        Ad = adjoint(inverse(acc.T_kf_now))
+        return Ad @ self.cov_kf @ Ad.T + acc.cov
 
     def landmark_map(self, kind: str) -> LandmarkMap:
         """Landmarks of ``kind`` in the graph (and those retired from the fixed-lag window), world
@@ -280,10 +283,7 @@ class Isam2Smoother(LateFixes, Backend):
         self._buf_values = gtsam.Values()
         for layer in self.kinds.used():
             layer.on_keyframe()
-        predicted = None
-        if marginalizing and self.config.predicted_cov_when_marginalizing:
-            Ad = adjoint(inverse(acc.T_kf_now))
-            predicted = Ad @ self.cov_kf @ Ad.T + acc.cov
+        predicted = self._predicted_cov(acc) if marginalizing and self.config.predicted_cov_when_marginalizing else None
         self.acc = OdometryAccumulator(t)
         self.segments[k] = self.acc
         self._prune_history(t)
