@@ -44,6 +44,7 @@ def process_noise_body(
     dist = speed * step.dt
     fwd_slip2 = cfg.fwd_per_sqrtm**2 + (cfg.fwd_per_sqrtm_per_rad * pitch_rad(step)) ** 2
     var_t = np.array([s_fwd, s_lat, s_vert]) ** 2 * step.dt + dist * np.array([fwd_slip2, cfg.lat_per_sqrtm**2, 0.0])
+    var_t[0] += step.extra_forward_var_m2
     var_r = np.full(3, s_rot**2 * step.dt)
     return var_t, var_r
 
@@ -69,10 +70,14 @@ def propagate(
 
 
 def split_step(step: OdometryStep, t: float) -> tuple[OdometryStep, OdometryStep]:
-    """Split a step at ``t0 < t < t1``: same speed, the IMU orientation interpolated on SO(3)."""
+    """Split a step at ``t0 < t < t1``: same speed, the IMU orientation interpolated on SO(3), the
+    extra forward variance shared in proportion to time."""
     a = (t - step.t0) / step.dt
     dR = step.R_ref_base0.T @ step.R_ref_base1
     R_t = step.R_ref_base0 @ exp_so3(a * log_so3(dR))
-    first = OdometryStep(step.t0, t, step.v_mps, step.yaw_rate_cmd_radps, step.R_ref_base0, R_t, step.gyro_radps)
-    second = OdometryStep(t, step.t1, step.v_mps, step.yaw_rate_cmd_radps, R_t, step.R_ref_base1, step.gyro_radps)
+    extra = step.extra_forward_var_m2
+    first = OdometryStep(step.t0, t, step.v_mps, step.yaw_rate_cmd_radps, step.R_ref_base0, R_t, step.gyro_radps,
+                         a * extra)
+    second = OdometryStep(t, step.t1, step.v_mps, step.yaw_rate_cmd_radps, R_t, step.R_ref_base1, step.gyro_radps,
+                          (1.0 - a) * extra)
     return first, second

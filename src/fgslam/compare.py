@@ -138,6 +138,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
             "update_p99_ms": res.stats.extra.get("latency_p99_ms", res.extra.get("frame_latency", {}).get("p99_ms")),
         },
         "memory": res.extra.get("memory", []),
+        "slip": res.extra.get("slip", {}),  # the wheel-slip monitor's checks and spells (reloc.slip)
         "n_landmarks": res.n_landmarks,
         "landmarks_by_kind": {k: len(m) for k, m in res.landmarks.items()},
     }

@@ -1,8 +1,9 @@
 """Runner: feed a time-ordered measurement stream to one back-end, with relocalization.
 
 The loop is the algorithm: for each measurement, *deliver the fixes that are due*, then
-*predict* (motion inputs, assembled into odometry steps by :class:`reloc.odometry.OdometryAssembler`)
-or *observe* (a landmark frame of any registered kind, :mod:`reloc.kinds`); ground-truth poses
+*predict* (motion inputs, assembled into odometry steps by :class:`reloc.odometry.OdometryAssembler`
+and corrected for wheel slip by :class:`reloc.slip.SlipMonitor`) or *observe* (a landmark frame of
+any registered kind, :mod:`reloc.kinds`, which the slip monitor sees too); ground-truth poses
 are only collected for evaluation. Beside it: where fixes come from (one
 :class:`fgslam.fix_sources.FixSource`: online relocalizers, a replayed list, a feed), the
 recording of the online estimate at ``record_rate_hz`` (:class:`RunRecorder`), and the wall time
@@ -35,6 +36,7 @@ from reloc.kinds import UnknownKindError, kind_of
 from reloc.measurements import CmdVel, GlobalFix, GroundTruthPose, ImuSample, WheelOdometry
 from reloc.odometry import OdometryAssembler
 from reloc.rows import RowBuffer
+from reloc.slip import SlipConfig, SlipMonitor
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +66,9 @@ class RunnerConfig:
     # 16.0 s of back-end time with OpenBLAS's default threads, 8.2 s with one).
     blas_threads: NonNegativeInt = 1
     rss_every_m: Positive = 500.0  # resident memory sampled every this many metres of estimated path
+    # wheel slip seen by the landmarks corrects the odometry of both back-ends (reloc.slip): the
+    # fault table's 60 s stuck rover (docs/sim.md)
+    slip: SlipConfig = field(default_factory=SlipConfig)
 
 
 @dataclass
@@ -210,6 +215,7 @@ def run_backend(
 def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress) -> RunResult:
     odometry = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
                                  max_speed_age_s=cfg.max_speed_age_s)
+    slip = SlipMonitor(cfg.slip)
     rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
@@ -222,14 +228,16 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         if isinstance(m, MOTION_INPUTS):
             step = odometry.push(m)
             if step is not None:  # predict
-                be.predict(step)
+                be.predict(slip.correct(step))
                 rec.predicted(t, be)
                 fixes.after_predict(t, be)
                 rec.progress(t)
         elif isinstance(m, GroundTruthPose):
             rec.saw_truth(m)
         else:  # observe
-            kinds.setdefault(_landmark_kind(m, t))
+            kind = _landmark_kind(m, t)
+            kinds.setdefault(kind)
+            slip.observe(kind, m)
             be.observe(m)
     if rec.t_first is None:
         raise RunnerError("the measurement stream is empty")
@@ -247,5 +255,5 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         landmarks={k: be.landmark_map(k) for k in kinds}, stats=be.stats(),
         wall_s=wall, backend_s=be.busy_s, match_s=fixes.match_s, t_start=float(rec.t_first),
         t_end=float(rec.t_last), cpu_s=cpu, backend_cpu_s=be.busy_cpu_s,
-        extra={"frame_latency": be.frame_latency.to_dict(), "memory": rec.memory},
+        extra={"frame_latency": be.frame_latency.to_dict(), "memory": rec.memory, "slip": slip.stats()},
     )

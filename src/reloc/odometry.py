@@ -36,7 +36,8 @@ class OdometryStep:
     ``v_mps``: forward speed (base_link x) over the step; ``yaw_rate_cmd_radps``: commanded yaw rate;
     ``R_ref_base0`` / ``R_ref_base1`` (3, 3): IMU orientations at t0 / t1 (gravity-aligned reference,
     yaw drifting); ``gyro_radps`` (3,): mean body rate; ``dR_base`` = R0.T @ R1 the body-frame
-    rotation increment.
+    rotation increment; ``extra_forward_var_m2``: forward translation variance (m^2) the back-ends
+    add to their own noise over the step (the slip monitor's uncertainty, :mod:`reloc.slip`).
     """
 
     t0: float
@@ -46,6 +47,7 @@ class OdometryStep:
     R_ref_base0: np.ndarray
     R_ref_base1: np.ndarray
     gyro_radps: np.ndarray
+    extra_forward_var_m2: float = 0.0
 
     @property
     def dt(self) -> float:

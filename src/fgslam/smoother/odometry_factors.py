@@ -33,7 +33,7 @@ def step_motion(step: OdometryStep, cfg: OdometryNoiseConfig) -> tuple[np.ndarra
     ad = abs(d_m)
     slope = pitch_rad(step)
     s_f2 = (cfg.sigma_forward_m_per_sqrtm**2 + (cfg.sigma_forward_m_per_sqrtm_per_rad * slope) ** 2) * ad
-    s_f2 += cfg.floor_sigma_m**2
+    s_f2 += cfg.floor_sigma_m**2 + step.extra_forward_var_m2
     s_l2 = cfg.sigma_lateral_m_per_sqrtm**2 * ad + cfg.floor_sigma_m**2
     s_r2 = cfg.sigma_rot_radpsqrts**2 * max(step.dt, 0.0) + cfg.floor_sigma_rad**2
     Q = np.diag([s_r2, s_r2, s_r2, s_f2, s_l2, s_l2])
