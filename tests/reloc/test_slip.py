@@ -131,13 +131,13 @@ def test_a_free_rover_is_never_corrected():
 
 
 def test_a_blind_camera_releases_the_correction_after_hold_s():
-    mon, *_ , steps = _drive(SlipConfig(hold_s=3.0), stuck=(10.0, 40.0), blind=(20.0, 40.0))
+    *_, steps = _drive(SlipConfig(hold_s=3.0), stuck=(10.0, 40.0), blind=(20.0, 40.0))
     corrected_t = [s.t0 for s in steps if s.extra_forward_var_m2 > 0]
     assert corrected_t and max(corrected_t) < 20.0 + 3.0 + 0.05
 
 
 def test_disabled_monitor_changes_nothing():
-    mon, x_est, x_true, steps = _drive(SlipConfig(enabled=False))
+    mon, x_est, _, _ = _drive(SlipConfig(enabled=False))
     assert x_est == pytest.approx(0.1 * 45.0) and mon.stats()["n_checks"] == 0
 
 
