@@ -14,6 +14,7 @@ files, without the console: configs are YAML paths, dicts of overrides or config
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,9 +50,12 @@ def _compare_config(config):
     return load_compare_config(Path(config))
 
 
-def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, on_progress=None) -> RunOutcome:
+def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, on_progress=None,
+            live: Callable | None = None) -> RunOutcome:
     """Run ``backend`` (with online relocalization when ``reloc``) over ``inputs``
-    (:class:`fgslam.inputs.RunInputs`) with the :class:`fgslam.compare.CompareConfig` ``cfg``."""
+    (:class:`fgslam.inputs.RunInputs`) with the :class:`fgslam.compare.CompareConfig` ``cfg``.
+    ``live(key, gt)`` -> a :class:`fgslam.runner.RunObserver` told of the run as it goes (a live
+    viewer; its ``finish(result)``, if it has one, is called with the result)."""
     from fgslam.backends.registry import backend_config_dict, make_backend
     from fgslam.compare import relocalizer_set, run_key, run_metrics
     from fgslam.fix_sources import NoFixes, OnlineFixes
@@ -68,8 +72,11 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
     relocs = relocalizer_set(inputs, cfg) if reloc else []
     fixes = OnlineFixes(relocs) if relocs else NoFixes()
     key = run_key(backend, reloc)
+    observer = live(key, gt) if live is not None else None
     res = run_backend(be, inputs.measurements, fixes, config=runner_cfg,
-                      on_progress=on_progress(key) if on_progress is not None else None)
+                      on_progress=on_progress(key) if on_progress is not None else None, observer=observer)
+    if observer is not None and hasattr(observer, "finish"):
+        observer.finish(res)
     met = run_metrics(res, gt, res.attempts, cfg.rpe_delta_m)
     used = {
         "backend": backend, "relocalization": reloc, "inputs": inputs.source,

@@ -7,7 +7,9 @@ any registered kind, :mod:`reloc.kinds`, which the slip monitor sees too); groun
 are only collected for evaluation. Beside it: where fixes come from (one
 :class:`fgslam.fix_sources.FixSource`: online relocalizers, a replayed list, a feed), the
 recording of the online estimate at ``record_rate_hz`` (:class:`RunRecorder`), and the wall time
-of the back-end's calls (:class:`fgslam.timing.TimedBackend`).
+of the back-end's calls (:class:`fgslam.timing.TimedBackend`), and an optional
+:class:`RunObserver` (a live viewer) told of each recorded estimate and each fix outcome as they
+happen.
 
 The stream is consumed lazily, one measurement at a time (any iterable: a list, a generator
 over a bag being read). The run records the online estimate (with covariance), the final
@@ -20,7 +22,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -30,7 +32,7 @@ from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixSource, NoFixes
 from fgslam.relocalizer import FixAttempt
 from fgslam.timing import TimedBackend
-from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, Trajectory
+from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, PoseEstimate, Trajectory
 from reloc.config import NonNegativeInt, Positive, checked
 from reloc.kinds import UnknownKindError, kind_of
 from reloc.measurements import CmdVel, GlobalFix, GroundTruthPose, ImuSample, WheelOdometry
@@ -122,13 +124,24 @@ def truth_from_rows(g: np.ndarray) -> Trajectory | None:
     return Trajectory(g[:, 0].copy(), T, None)
 
 
+class RunObserver(Protocol):
+    """Told of the run as it goes (e.g. :class:`fgslam.viz.rerun_log.LiveRun`): every recorded
+    online estimate (``record_rate_hz``) and every fix outcome, when they happen."""
+
+    def recorded(self, est: PoseEstimate) -> None: ...
+
+    def fix(self, outcome: FixOutcome) -> None: ...
+
+
 class RunRecorder:
     """The online estimate every ``1 / rate_hz`` s of stream time (after an odometry step), the
     ground truth, the stream's span, and progress reports."""
 
-    def __init__(self, rate_hz: float, on_progress: Callable[[float], None] | None, rss_every_m: float = 500.0) -> None:
+    def __init__(self, rate_hz: float, on_progress: Callable[[float], None] | None, rss_every_m: float = 500.0,
+                 observer: RunObserver | None = None) -> None:
         self.dt = 1.0 / rate_hz
         self.on_progress = on_progress
+        self.observer = observer
         self.t_first = self.t_last = None
         self.next_record = None
         self.records = RowBuffer(1 + 16 + 36)  # t, T_world_base, cov
@@ -157,6 +170,8 @@ class RunRecorder:
                 if int(self.distance_m // self.rss_every_m) > int(d0 // self.rss_every_m):
                     self.sample_memory(t)
             self.records.append(np.concatenate(([est.t], np.ravel(est.T_world_base), np.ravel(est.cov))))
+            if self.observer is not None:
+                self.observer.recorded(est)
             self.next_record = self.t_first + self.dt * (np.floor((t - self.t_first) / self.dt + 1e-9) + 1)
 
     def sample_memory(self, t: float) -> None:
@@ -203,20 +218,23 @@ def run_backend(
     config: RunnerConfig | None = None,
     on_progress: Callable[[float], None] | None = None,
     time_cpu: bool = False,
+    observer: RunObserver | None = None,
 ) -> RunResult:
     """Run ``backend`` over ``measurements`` (time-ordered, consumed lazily) with fixes from
     ``fixes`` (:mod:`fgslam.fix_sources`; default none); ``time_cpu`` also measures the CPU time
-    of the back-end's calls (``RunResult.backend_cpu_s``, benchmarks)."""
+    of the back-end's calls (``RunResult.backend_cpu_s``, benchmarks); ``observer`` is told of
+    each recorded estimate and fix outcome as the run goes (a live viewer)."""
     cfg = config or RunnerConfig()
     with blas_limit(cfg.blas_threads):
-        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, on_progress)
+        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, on_progress, observer)
 
 
-def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress) -> RunResult:
+def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress,
+         observer: RunObserver | None = None) -> RunResult:
     odometry = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
                                  max_speed_age_s=cfg.max_speed_age_s)
     slip = SlipMonitor(cfg.slip)
-    rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m)
+    rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m, observer)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -225,6 +243,8 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         rec.saw(t)
         for fix in fixes.due(t, be):  # deliver the fixes that are due
             outcomes.append(be.apply_fix(fix))
+            if observer is not None:
+                observer.fix(outcomes[-1])
         if isinstance(m, MOTION_INPUTS):
             step = odometry.push(m)
             if step is not None:  # predict

@@ -1,7 +1,7 @@
 """rerun (issue 16): the recording's error curves hold the run's own values (the final curve's
 median is metrics.json's ATE median; the 3-sigma bound is another series in another shade), poses
-carry a heading arrow, and a run streams live to a viewer (--connect) or to a gRPC server it
-starts bound to 127.0.0.1 (--serve)."""
+carry a heading arrow, and a run streams live, pose by pose while it runs, to a viewer
+(--connect) or to a gRPC server it starts bound to 127.0.0.1 (--serve)."""
 
 from __future__ import annotations
 
@@ -118,6 +118,71 @@ def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
             viewer.kill()
             viewer.wait()
     assert wanted <= ents
+
+
+def _pose_times(path: Path, entity: str) -> list[float]:
+    """Stream seconds of the rows logged on ``entity`` in a saved recording ([] while unreadable)."""
+    from rerun.chunk import RrdReader
+
+    out: list[float] = []
+    try:
+        for c in RrdReader(path).stream():
+            if c.entity_path == entity and not c.is_static:
+                rb = c.to_record_batch()
+                out += [v.total_seconds() for v in rb.column(rb.schema.names.index(rerun_log.TIMELINE)).to_pylist()]
+    except Exception:  # not there yet, or a message half written
+        return []
+    return sorted(out)
+
+
+def test_a_run_streams_pose_by_pose_while_it_runs(synth_dir, tmp_path):
+    """Halfway through the stream the runner waits: by then the viewer has received the poses up
+    to that time (and none beyond it); the finished run then adds its path and final error."""
+    from fgslam.backends.registry import make_backend
+    from fgslam.inputs import load_sim_dir, truth_of
+    from fgslam.runner import run_backend
+
+    port, saved = _free_port(), tmp_path / "received.rrd"
+    viewer = subprocess.Popen([RERUN, "--bind", "127.0.0.1", "--port", str(port), "--save", str(saved)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    pose = "/synth/ekf/pose"
+    try:
+        for _ in range(200):
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.1)
+        inputs = load_sim_dir(synth_dir)
+        gt = truth_of(inputs)
+        live = rerun_log.LiveRun(rerun_log.viewer_url(port), "synth", "ekf", inputs, gt)
+        t_mid = 0.5 * (gt.t[0] + gt.t[-1])
+        seen: dict[str, list[float]] = {}
+
+        def stream():
+            for m in inputs.measurements:
+                if m.t >= t_mid and "mid" not in seen:  # the run pauses here until the viewer has its poses
+                    deadline = time.monotonic() + 60.0
+                    while time.monotonic() < deadline:
+                        seen["mid"] = _pose_times(saved, pose)
+                        if seen["mid"] and seen["mid"][-1] >= t_mid - 2 * rerun_log.LIVE_STEP_S:
+                            break
+                        time.sleep(0.3)
+                yield m
+
+        res = run_backend(make_backend("ekf", inputs.initial), stream(), observer=live)
+        live.finish(res)
+        ents = _entities_when_written(saved, {"/synth/ekf/path", "/synth/errors/position/ekf_final"})
+    finally:
+        viewer.send_signal(signal.SIGINT)
+        try:
+            viewer.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
+            viewer.wait()
+    mid = seen["mid"]
+    assert mid and t_mid - 2 * rerun_log.LIVE_STEP_S <= mid[-1] < t_mid  # up to the pause, nothing later
+    assert len(mid) >= 0.4 * (t_mid - gt.t[0]) / rerun_log.LIVE_STEP_S  # about one a second (or per 0.5 m)
+    assert live.n_poses > len(mid) and {"/synth/ekf/path", "/synth/errors/position/ekf_final"} <= ents
 
 
 def test_serve_starts_a_server_on_localhost_only(synth_dir, tmp_path, capsys):

@@ -154,16 +154,30 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         if counted is not None:
             should = [(t, n, a) for t, n, a in counted.records if n >= cfg.min_catalogued]
             ok = 0
+            failed: dict[str, int] = {}  # why the attempts that should have relocalized did not
             for _, _, a in should:
+                good = False
                 if a.fix is not None:
                     err = float(fix_errors(np.array([a.fix.xyyaw]), np.array([a.fix.t_meas]), gt)[0][0])
-                    ok += int(err <= cfg.wrong_fix_m)
+                    good = err <= cfg.wrong_fix_m
+                ok += int(good)
+                if not good:
+                    why = "wrong fix" if a.fix is not None else a.status
+                    failed[why] = failed.get(why, 0) + 1
             row["crater_reloc"] = {
                 "attempts": len(counted.records), "with_min_catalogued": len(should), "succeeded": ok,
-                "success_rate": ok / len(should) if should else None,
+                "success_rate": ok / len(should) if should else None, "failed_by_status": failed,
+                "statuses": _count(a.status for _, _, a in counted.records),
                 "median_catalogued_mapped": float(np.median([n for _, n, _ in counted.records])) if counted.records else 0.0,
             }
         out["passes"][name] = row
+    return out
+
+
+def _count(items) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for k in items:
+        out[k] = out.get(k, 0) + 1
     return out
 
 

@@ -144,8 +144,14 @@ def run_cmd(
         if rrd is not None and rrd_staged is None:
             check_output_path(rrd, "--rrd", directory=False)
         inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics), cfg.images, console)
+        live_run = None
+        if live is not None:  # pose by pose while the run goes (fgslam.viz.rerun_log.LiveRun)
+            from fgslam.viz.rerun_log import LiveRun
+
+            def live_run(key, gt):
+                return LiveRun(live, inputs.name, key, inputs, gt)
         with stream_progress(inputs, console) as progress:
-            outcome = run_one(inputs, backend, not no_reloc, cfg, topics, progress.callback)
+            outcome = run_one(inputs, backend, not no_reloc, cfg, topics, progress.callback, live=live_run)
         key, res, gt, met = outcome.key, outcome.result, outcome.gt, outcome.metrics
         write_run_outputs(od.staging, res, gt, met, outcome.used, key)
         if rrd is not None:  # in --out: part of the directory; elsewhere: its own atomic file
@@ -157,10 +163,6 @@ def run_cmd(
             else:
                 with atomic_path(rrd, "--rrd") as tmp:
                     write_rrd(tmp, items)
-        if live is not None:
-            from fgslam.viz.rerun_log import stream_rrd
-
-            stream_rrd(live, [(inputs.name, inputs, gt, {key: res}, res.attempts)])
         files = od.commit() + ([rrd] if rrd is not None and rrd_staged is None else [])
     if "ate" in met:
         console.print(f"{key}: ATE {met['ate']['rmse']:.3f} m, fixes {met['fixes']['fixes']} "

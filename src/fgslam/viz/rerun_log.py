@@ -19,9 +19,10 @@ the rover knew at that time, the same series as the 3-sigma bound); the metrics'
 (smoothed) trajectory's, which for iSAM2 is much smaller: ``/W/errors/position/K_final`` draws
 that one too. Each bound is drawn in a lighter shade and thinner than its error.
 
-Recordings go to a file (:func:`write_rrd`) or live to a viewer (:func:`stream_rrd`): one this
-process starts on 127.0.0.1 (:func:`start_viewer`: a native viewer, or a gRPC server only that
-viewers connect to) or any gRPC URL (``rerun+http://HOST:PORT/proxy``).
+Recordings go to a file (:func:`write_rrd`) or live to a viewer: one run pose by pose as it
+runs (:class:`LiveRun`), or a finished comparison at once (:func:`stream_rrd`); the viewer is one
+this process starts on 127.0.0.1 (:func:`start_viewer`: a native viewer, or a gRPC server only
+that viewers connect to) or any gRPC URL (``rerun+http://HOST:PORT/proxy``).
 """
 
 from __future__ import annotations
@@ -144,7 +145,19 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
                         columns=rr.Points3D.columns(positions=flat(gt.positions_m[::step, :2], Z_TRUTH)),
                         recording=rec)
     for key, run in runs.items():
-        _log_run(rec, world, key, run, gt)
+        _log_styles(rec, world, key)
+        _log_run_result(rec, world, key, run, gt)
+        if len(run.online):
+            _log_online(rec, world, key, along_path(run.online), gt)
+        _log_fixes(rec, world, key, run.outcomes)
+    _log_matches(rec, world, attempts)
+    rec.reset_time()
+
+
+def _log_matches(rec, world: str, attempts: list) -> None:
+    """Matched local -> catalog pairs at their ``t_meas``, one fix per ``RRD_MATCH_STEP_M`` of path."""
+    import rerun as rr
+
     last_xy = None
     for a in attempts:
         if a.fix is None or len(a.local_xy) == 0:
@@ -155,48 +168,91 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
         last_xy = here
         rec.set_time(TIMELINE, duration=a.t_meas)
         strips = [np.array([[*l, Z_FIX], [*w, Z_FIX]]) for l, w in zip(a.local_xy, a.world_xy)]
-        rec.log(p(ENT_MATCHES), rr.LineStrips3D(strips, colors=COLORS["match"], radii=0.02))
+        rec.log(f"{world}/{ENT_MATCHES}", rr.LineStrips3D(strips, colors=COLORS["match"], radii=0.02))
     rec.reset_time()
 
 
-def _log_run(rec, world: str, key: str, run, gt) -> None:
+def _log_styles(rec, world: str, key: str) -> None:
+    """The static styles of a run's time-varying entities: heading arrows and error series."""
     import rerun as rr
 
-    def p(*parts: str) -> str:
-        return "/".join((world, key) + parts)
+    rec.log(f"{world}/{key}/{ENT_HEADING}", rr.Arrows3D.from_fields(colors=_color(key), radii=0.03), static=True)
+    for ent, style in _series_entities(key):
+        rec.log(f"{world}/{ent}", rr.SeriesLines(colors=_shade(_color(key), style), widths=SERIES_WIDTH[style],
+                                                 names=f"{key} {style}"), static=True)
+
+
+def _log_run_result(rec, world: str, key: str, run, gt) -> None:
+    """What only a finished run has: its final path, its landmark maps, the final trajectory's error."""
+    import rerun as rr
 
     col = _color(key)
     if len(run.final):
         k = path_samples(run.final.t, run.final.positions_m, step_s=np.inf)
-        rec.log(p(ENT_PATH), rr.LineStrips3D([flat(run.final.positions_m[k, :2], Z_PATH)], colors=col, radii=0.03),
-                static=True)
+        rec.log(f"{world}/{key}/{ENT_PATH}", rr.LineStrips3D([flat(run.final.positions_m[k, :2], Z_PATH)],
+                                                            colors=col, radii=0.03), static=True)
     for kind, lmap in run.landmarks.items():
-        landmark_logger(kind).log_map(rec, p(ENT_LANDMARKS, kind), lmap, col)
-    on = run.online
-    if len(on):
-        on = along_path(on)
-        idx = rr.TimeColumn(TIMELINE, duration=on.t)
-        rr.send_columns(p(ENT_POSE), indexes=[idx], columns=rr.Points3D.columns(
-            positions=flat(on.positions_m[:, :2], Z_PATH), radii=np.full(len(on), 0.12)), recording=rec)
-        forward = on.T_world_base[:, :2, 0]  # base_link x axis in world: the heading
-        forward = HEADING_ARROW_M * forward / np.maximum(np.linalg.norm(forward, axis=1, keepdims=True), 1e-12)
-        rr.send_columns(p(ENT_HEADING), indexes=[idx], columns=rr.Arrows3D.columns(
-            origins=flat(on.positions_m[:, :2], Z_PATH), vectors=flat(forward, 0.0)), recording=rec)
-        rec.log(p(ENT_HEADING), rr.Arrows3D.from_fields(colors=col, radii=0.03), static=True)
-        half, q = ellipses(on.cov[:, :2, :2])
-        rr.send_columns(p(ENT_POSE_COV), indexes=[idx], columns=rr.Ellipsoids3D.columns(
-            centers=flat(on.positions_m[:, :2], Z_PATH), half_sizes=half, quaternions=q), recording=rec)
-        if gt is not None:
-            _log_errors(rec, world, key, on, run.final, gt)
-    if run.outcomes:
-        t = np.array([o.fix.t_recv for o in run.outcomes])
-        xy = np.array([[o.fix.x_m, o.fix.y_m] for o in run.outcomes])
-        colors = np.array([COLORS["fix_ok"] if o.accepted else COLORS["fix_bad"] for o in run.outcomes], dtype=np.uint8)
-        rr.send_columns(p(ENT_FIXES), indexes=[rr.TimeColumn(TIMELINE, duration=t)], columns=rr.Points3D.columns(
-            positions=flat(xy, Z_FIX), colors=colors, radii=np.full(len(t), 0.2)), recording=rec)
+        landmark_logger(kind).log_map(rec, f"{world}/{key}/{ENT_LANDMARKS}/{kind}", lmap, col)
+    if gt is not None and len(run.final):
+        final_err, final_t = M.position_errors(along_path(run.final), gt)
+        rr.send_columns(f"{world}/{ENT_ERR_POS}/{key}_final", indexes=[rr.TimeColumn(TIMELINE, duration=final_t)],
+                        columns=rr.Scalars.columns(scalars=np.linalg.norm(final_err, axis=1)), recording=rec)
+
+
+def _log_online(rec, world: str, key: str, on, gt) -> None:
+    """The online estimate ``on`` (a Trajectory with covariance, already sampled): pose, heading
+    arrow, 3-sigma ellipse and, with truth, the error and 3-sigma series."""
+    import rerun as rr
+
+    idx = rr.TimeColumn(TIMELINE, duration=on.t)
+    xyz = flat(on.positions_m[:, :2], Z_PATH)
+    rr.send_columns(f"{world}/{key}/{ENT_POSE}", indexes=[idx], columns=rr.Points3D.columns(
+        positions=xyz, radii=np.full(len(on), 0.12)), recording=rec)
+    forward = on.T_world_base[:, :2, 0]  # base_link x axis in world: the heading
+    forward = HEADING_ARROW_M * forward / np.maximum(np.linalg.norm(forward, axis=1, keepdims=True), 1e-12)
+    rr.send_columns(f"{world}/{key}/{ENT_HEADING}", indexes=[idx], columns=rr.Arrows3D.columns(
+        origins=xyz, vectors=flat(forward, 0.0)), recording=rec)
+    half, q = ellipses(on.cov[:, :2, :2])
+    rr.send_columns(f"{world}/{key}/{ENT_POSE_COV}", indexes=[idx], columns=rr.Ellipsoids3D.columns(
+        centers=xyz, half_sizes=half, quaternions=q), recording=rec)
+    if gt is None:
+        return
+    _, s = M.consistency(on, gt)
+    if not len(s["t"]):
+        return
+    mask = np.isin(on.t, s["t"])
+    sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(on.cov[mask][:, :2, :2])[:, -1])
+    values = (np.linalg.norm(s["err_xy"], axis=1), sig_pos, np.degrees(np.abs(s["err_yaw"])),
+              np.degrees(3.0 * s["sigma_yaw"]))
+    online_entities = [ent for ent, _ in _series_entities(key) if not ent.endswith("_final")]
+    for ent, vals in zip(online_entities, values):
+        rr.send_columns(f"{world}/{ent}", indexes=[rr.TimeColumn(TIMELINE, duration=s["t"])],
+                        columns=rr.Scalars.columns(scalars=vals), recording=rec)
+
+
+def _log_fixes(rec, world: str, key: str, outcomes: list) -> None:
+    """Fix events at ``t_recv``: green accepted, red rejected."""
+    import rerun as rr
+
+    if not outcomes:
+        return
+    t = np.array([o.fix.t_recv for o in outcomes])
+    xy = np.array([[o.fix.x_m, o.fix.y_m] for o in outcomes])
+    colors = np.array([COLORS["fix_ok"] if o.accepted else COLORS["fix_bad"] for o in outcomes], dtype=np.uint8)
+    rr.send_columns(f"{world}/{key}/{ENT_FIXES}", indexes=[rr.TimeColumn(TIMELINE, duration=t)],
+                    columns=rr.Points3D.columns(positions=flat(xy, Z_FIX), colors=colors,
+                                                radii=np.full(len(t), 0.2)), recording=rec)
 
 
 SERIES_WIDTH = {"error": 1.5, "3σ": 0.8, "final": 1.0}
+
+
+def _series_entities(key: str) -> list[tuple[str, str]]:
+    """(entity under the world, style) of a run's error series: online position error and its
+    3-sigma bound, online yaw error and its bound, the final trajectory's position error."""
+    return [(f"{ENT_ERR_POS}/{key}", "error"), (f"{ENT_ERR_POS}/{key}_3sigma", "3σ"),
+            (f"{ENT_ERR_YAW}/{key}", "error"), (f"{ENT_ERR_YAW}/{key}_3sigma", "3σ"),
+            (f"{ENT_ERR_POS}/{key}_final", "final")]
 
 
 def _shade(rgb: tuple[int, int, int], style: str) -> tuple[int, int, int]:
@@ -204,29 +260,6 @@ def _shade(rgb: tuple[int, int, int], style: str) -> tuple[int, int, int]:
     trajectory's error halfway to black."""
     target = {"error": None, "3σ": 255, "final": 0}[style]
     return rgb if target is None else tuple(int(round(0.5 * (c + target))) for c in rgb)
-
-
-def _log_errors(rec, world: str, key: str, online, final, gt) -> None:
-    """Error and 3-sigma series of the online estimate ``online`` (already sampled along the path)
-    and the error of the final trajectory ``final`` (sampled here the same way, :func:`along_path`)."""
-    import rerun as rr
-
-    _, s = M.consistency(online, gt)
-    err_pos = np.linalg.norm(s["err_xy"], axis=1)
-    mask = np.isin(online.t, s["t"])
-    sig_pos = 3.0 * np.sqrt(np.linalg.eigvalsh(online.cov[mask][:, :2, :2])[:, -1])
-    final_err, final_t = M.position_errors(along_path(final), gt)
-    for ent, vals, t, style in (
-        (f"{ENT_ERR_POS}/{key}", err_pos, s["t"], "error"),
-        (f"{ENT_ERR_POS}/{key}_3sigma", sig_pos, s["t"], "3σ"),
-        (f"{ENT_ERR_POS}/{key}_final", np.linalg.norm(final_err, axis=1), final_t, "final"),
-        (f"{ENT_ERR_YAW}/{key}", np.degrees(np.abs(s["err_yaw"])), s["t"], "error"),
-        (f"{ENT_ERR_YAW}/{key}_3sigma", np.degrees(3.0 * s["sigma_yaw"]), s["t"], "3σ"),
-    ):
-        rr.send_columns(f"{world}/{ent}", indexes=[rr.TimeColumn(TIMELINE, duration=t)],
-                        columns=rr.Scalars.columns(scalars=vals), recording=rec)
-        rec.log(f"{world}/{ent}", rr.SeriesLines(colors=_shade(_color(key), style), widths=SERIES_WIDTH[style],
-                                                 names=f"{key} {style}"), static=True)
 
 
 def world_view(world: str, keys: list[str], center_xy: np.ndarray, span_m: float):
@@ -273,8 +306,19 @@ def blueprint(worlds: list[tuple[str, list[str], np.ndarray, float]]):
     )
 
 
+LIVE_START_SPAN_M = 40.0  # the live view's first frame without truth: this much around the start
+
+
 def _frame(inputs, gt, runs) -> tuple[np.ndarray, float]:
-    p = gt.positions_m[:, :2] if gt is not None else next(iter(runs.values())).final.positions_m[:, :2]
+    """Centre (2,) and span (m) of a world's map view: the truth's extent, else the runs' final
+    paths', else (a live run without truth) ``LIVE_START_SPAN_M`` around the start pose."""
+    if gt is not None:
+        p = gt.positions_m[:, :2]
+    elif runs:
+        p = next(iter(runs.values())).final.positions_m[:, :2]
+    else:
+        c = np.asarray(inputs.initial.position_m[:2], dtype=float)
+        return c, LIVE_START_SPAN_M
     lo, hi = p.min(0) - 3.0, p.max(0) + 3.0
     return 0.5 * (lo + hi), float(max(hi - lo))
 
@@ -343,6 +387,62 @@ def stream_rrd(url: str, items: list[tuple[str, object, object, dict, list]], re
     rec.flush()
     rec.disconnect()
     return url
+
+
+LIVE_STEP_S = 1.0  # live: a pose at least every second of stream time (and every RRD_STEP_M of path)
+
+
+class LiveRun:
+    """One run streamed to a viewer or server at gRPC ``url`` *while it runs* (``fgslam run
+    --spawn / --serve / --connect``; a :class:`fgslam.runner.RunObserver`). The map, the catalogs
+    and the truth go first. Then the online pose, its heading and 3-sigma ellipse, and (with truth)
+    the error curves follow as the runner records them: one sample per ``RRD_STEP_M`` of path or
+    ``LIVE_STEP_S`` of stream time, flushed at once. Each fix outcome is sent when the back-end has
+    applied it. :meth:`finish` adds what only the finished run has: the final path, the landmark
+    maps, the final trajectory's error and the matched pairs. The entities are those of
+    :func:`write_rrd`; a viewer that goes away does not stop the run (rerun drops what it cannot
+    send)."""
+
+    def __init__(self, url: str, world: str, key: str, inputs, gt, recording_id: str | None = None) -> None:
+        import rerun as rr
+
+        self.world, self.key, self.gt = world, key, gt
+        self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        self.rec.connect_grpc(url, default_blueprint=blueprint([(world, [key], *_frame(inputs, gt, {}))]))
+        log_world(self.rec, world, inputs, gt, {}, [])
+        _log_styles(self.rec, world, key)
+        self.rec.flush()
+        self._last: tuple[float, np.ndarray] | None = None
+        self.n_poses = self.n_fixes = 0
+
+    def recorded(self, est) -> None:
+        """A recorded online estimate (:class:`reloc.backend.PoseEstimate`): sent when it is
+        ``RRD_STEP_M`` of path or ``LIVE_STEP_S`` past the last one sent."""
+        from reloc.backend import Trajectory
+
+        xy = np.asarray(est.position_m[:2], dtype=float)
+        if self._last is not None:
+            t0, xy0 = self._last
+            if np.hypot(*(xy - xy0)) < RRD_STEP_M and est.t - t0 < LIVE_STEP_S:
+                return
+        self._last = (float(est.t), xy)
+        one = Trajectory(np.array([est.t], dtype=float), np.asarray(est.T_world_base)[None], np.asarray(est.cov)[None])
+        _log_online(self.rec, self.world, self.key, one, self.gt)
+        self.rec.flush()
+        self.n_poses += 1
+
+    def fix(self, outcome) -> None:
+        """A fix outcome, at its ``t_recv``."""
+        _log_fixes(self.rec, self.world, self.key, [outcome])
+        self.n_fixes += 1
+
+    def finish(self, run) -> None:
+        """The finished run (:class:`fgslam.runner.RunResult`): final path, maps, final error,
+        matched pairs; then the stream is flushed and closed."""
+        _log_run_result(self.rec, self.world, self.key, run, self.gt)
+        _log_matches(self.rec, self.world, run.attempts)
+        self.rec.flush()
+        self.rec.disconnect()
 
 
 def write_comparison_rrd(path: Path, comparisons: list) -> Path:
