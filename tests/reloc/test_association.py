@@ -99,8 +99,11 @@ def test_joint_compatibility_drops_the_inconsistent_pair(rng):
 
     a = associate(z, Rz, L, S_hat)
     assert a.landmark_of.tolist() == [0, 1, 2]  # block-diagonal check sees nothing wrong
-    a = associate(z, Rz, L, S_hat, joint_cov=joint_cov)
+    a = associate(z, Rz, L, S_hat, AssociationConfig(min_pairs_uncertain=1), joint_cov=joint_cov)
     assert a.n_jc_dropped == 1 and a.landmark_of.tolist() == [0, 1, -1]
+    # by default the two pairs left are too few for a prediction 10 sigma wider than the detections
+    a = associate(z, Rz, L, S_hat, joint_cov=joint_cov)
+    assert a.n_jc_dropped == 1 and a.n_uncertain_dropped == 2 and a.landmark_of.tolist() == [-1, -1, -1]
 
 
 def test_bad_shapes_and_nan_are_named():
@@ -181,3 +184,25 @@ def test_joint_compatibility_drops_the_same_pairs_as_the_brute_force_search():
         kept, dropped = _brute_force_drop_order(nu, S, lambda n: chi2.ppf(cfg.joint_confidence, 3 * n))
         assert sorted(out_det.tolist()) == kept, trial
         assert n_drop == len(dropped)
+
+
+def test_too_few_pairs_cannot_re_place_an_uncertain_prediction():
+    """One or two pairs whose prediction is far less certain than the measurement (an uncertain
+    rover: a clutter point in an old landmark's wide gate) are dropped; three, or one well
+    predicted pair, are kept."""
+    cfg = AssociationConfig()
+    R = np.tile(np.eye(3) * 0.02**2, (3, 1, 1))
+    zhat = np.array([[3.0, 0.0, 0.0], [5.0, 2.0, 0.0], [6.0, -3.0, 0.0]])
+    z = zhat + 0.01
+    wide = np.tile(np.eye(3) * 0.2**2, (3, 1, 1))  # 10 sigma of the detection
+    lone = associate(z[:1], R[:1], zhat, wide, cfg)
+    assert (lone.landmark_of == -1).all() and lone.n_uncertain_dropped == 1
+    two = associate(z[:2], R[:2], zhat, wide, cfg)
+    assert (two.landmark_of == -1).all() and two.n_uncertain_dropped == 2
+    three = associate(z, R, zhat, wide, cfg)
+    np.testing.assert_array_equal(three.landmark_of, [0, 1, 2])
+    assert three.n_uncertain_dropped == 0
+    sure = associate(z[:1], R[:1], zhat, np.tile(np.eye(3) * 0.02**2, (3, 1, 1)), cfg)
+    assert sure.landmark_of[0] == 0
+    off = associate(z[:1], R[:1], zhat, wide, AssociationConfig(min_pairs_uncertain=1))
+    assert off.landmark_of[0] == 0

@@ -85,6 +85,10 @@ class LandmarkConfig:
         default_factory=lambda: ObservationBudget(max_observations=25, max_new=3))
     dense_view: NonNegativeInt = 60
     max_retired: NonNegativeInt = 5000  # landmarks kept (frozen) after leaving the fixed-lag window
+    # association gates a landmark last seen on an older keyframe with the uncertainty the pose
+    # gained since (causal covariances), as the EKF's joint covariance does: after a camera
+    # blackout the old landmarks are re-found instead of mapped anew (docs/smoother.md)
+    gate_with_cov_growth: bool = True
 
 
 

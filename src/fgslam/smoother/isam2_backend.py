@@ -85,6 +85,7 @@ class Isam2Smoother(LateFixes, Backend):
         self._buf_graph = gtsam.NonlinearFactorGraph()
         self._buf_values = gtsam.Values()
         self._solver_touched = False
+        self._growth_kf, self._growth = -1, {}  # cov_growth cache: keyframe index -> (6, 6)
 
         k = self.kfs.add(initial.t)
         graph = gtsam.NonlinearFactorGraph()
@@ -123,7 +124,7 @@ class Isam2Smoother(LateFixes, Backend):
         """One frame of a registered landmark kind: its layer associates it and buffers factors on
         the current keyframe for the next update."""
         frame = KeyframeFrame(len(self.kfs) - 1, self.T_kf, self.acc.T_kf_now, self.acc.cov,
-                              self._buf_graph, self._buf_values)
+                              self._buf_graph, self._buf_values, self._cov_growth)
         return self.kinds.for_obs(obs).observe(obs, frame)
 
     @classmethod
@@ -162,6 +163,29 @@ class Isam2Smoother(LateFixes, Backend):
         """Latest pose: keyframe estimate composed with the odometry since, covariance propagated."""
         T = self.T_kf @ self.acc.T_kf_now
         return PoseEstimate(self.acc.t_now, T, cov_gtsam_to_world(T[:3, :3], self._predicted_cov(self.acc)))
+
+    def _cov_growth(self, t_last: np.ndarray) -> np.ndarray:
+        """(K, 6, 6) GTSAM body frame: how much more uncertain the newest keyframe is than the
+        keyframe at or before each time ``t_last`` (K,) was, from the causal covariances (the
+        positive part of the difference; 0 for the newest keyframe itself). It is the pose's
+        uncertainty relative to a landmark last seen then, which the landmark store's covariance
+        (relative to its observing poses) leaves out: after a blackout of the camera it is the
+        drift while blind. Cached per keyframe."""
+        k_now = len(self.kfs) - 1
+        if self._growth_kf != k_now:
+            self._growth_kf, self._growth = k_now, {}
+        idx = np.clip(np.searchsorted(np.asarray(self.kfs.t), t_last, side="right") - 1, 0, k_now)
+        out = np.zeros((len(idx), 6, 6))
+        C_now = self.kfs.online_cov[k_now]
+        for i in np.unique(idx):
+            if i == k_now:
+                continue
+            G = self._growth.get(int(i))
+            if G is None:
+                w, V = np.linalg.eigh(0.5 * (C_now + C_now.T) - 0.5 * (self.kfs.online_cov[i] + self.kfs.online_cov[i].T))
+                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], (V * np.maximum(w, 0.0)) @ V.T)
+            out[idx == i] = G
+        return out
 
     def _predicted_cov(self, acc: OdometryAccumulator) -> np.ndarray:
         """The newest keyframe's marginal moved through the odometry ``acc`` since it (GTSAM tangent)."""

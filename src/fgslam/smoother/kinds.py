@@ -94,7 +94,9 @@ def resolved_smoother_config(config) -> dict:
 class KeyframeFrame:
     """What a kind's ``observe`` sees: the current keyframe ``kf``, its estimate ``T_world_kf``
     (4, 4), the odometry since it (``T_kf_now`` (4, 4), ``cov_kf_now`` (6, 6) GTSAM body frame),
-    and the buffers of the next keyframe update."""
+    and the buffers of the next keyframe update. ``cov_growth(t_last)`` (K,) -> (K, 6, 6): how much
+    more uncertain (GTSAM body frame) the current keyframe is than the keyframes at those times, i.e.
+    its uncertainty relative to landmarks last seen then (None: none)."""
 
     kf: int
     T_world_kf: np.ndarray
@@ -102,6 +104,7 @@ class KeyframeFrame:
     cov_kf_now: np.ndarray
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
+    cov_growth: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 class SmootherKinds(KindLayers):

@@ -113,11 +113,14 @@ class LandmarkStore:
         size_m: np.ndarray,
         z_kf: np.ndarray,
         R_kf: np.ndarray,
+        cov_growth=None,
     ) -> FrameAssociation:
         """Associate detections ``z_base`` (N, 3) with covariance ``R_z`` (N, 3, 3) seen from the
         keyframe ``kf`` at ``T_world_base`` (4, 4); ``cov_rel_pose`` (6, 6, GTSAM body frame) is
         the pose uncertainty relative to the landmarks (odometry since the keyframe). ``z_kf`` (N, 3)
-        and ``R_kf`` (N, 3, 3) are the same detections moved onto the keyframe, for the factors."""
+        and ``R_kf`` (N, 3, 3) are the same detections moved onto the keyframe, for the factors.
+        ``cov_growth(t_last)`` (K,) -> (K, 6, 6) adds to each candidate's pose uncertainty what the
+        pose gained since the landmark was last seen (see :class:`fgslam.smoother.kinds.KeyframeFrame`)."""
         R, p = T_world_base[:3, :3], T_world_base[:3, 3]
         rng = np.linalg.norm(z_base, axis=1)
         usable = rng >= self.cfg.min_range_m
@@ -134,11 +137,30 @@ class LandmarkStore:
             H = np.zeros((len(cands), 3, 6))
             H[:, :, :3] = skew(zhat)
             H[:, :, 3:] = -np.eye(3)
-            S_hat = S_hat + H @ cov_rel_pose @ np.swapaxes(H, 1, 2)
+            S_l = S_hat
+            grow = cov_growth is not None and self.cfg.gate_with_cov_growth
+            t_last = np.array([r.t_last for r in cands])
+            P = cov_rel_pose + cov_growth(t_last) if grow else cov_rel_pose
+            S_hat = S_l + H @ P @ np.swapaxes(H, 1, 2)
             sizes = np.array([r.size_sum_m / max(r.n_obs, 1) for r in cands])
+
+            def joint_cov(det: np.ndarray, ci: np.ndarray) -> np.ndarray:
+                """The pairs' full innovation covariance: the pose error since a keyframe is shared
+                by every landmark seen before it (the growth since the later of two last-seen
+                keyframes, and the odometry since the current keyframe, are common to both)."""
+                k = det.size
+                Hc = H[ci]
+                if grow:
+                    later = np.maximum(t_last[ci][:, None], t_last[ci][None, :]).ravel()
+                    P_pair = (cov_rel_pose + cov_growth(later)).reshape(k, k, 6, 6)
+                    S = np.einsum("aip,abpq,bjq->aibj", Hc, P_pair, Hc)
+                else:
+                    S = np.einsum("aip,pq,bjq->aibj", Hc, cov_rel_pose, Hc)
+                S[np.arange(k), :, np.arange(k), :] += S_l[ci] + R_z[det]
+                return S.reshape(3 * k, 3 * k)
         else:
-            zhat, S_hat, sizes = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
-        a = associate(z_base, R_z, zhat, S_hat, self.cfg.association, size_m, sizes)
+            zhat, S_hat, sizes, joint_cov = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), None
+        a = associate(z_base, R_z, zhat, S_hat, self.cfg.association, size_m, sizes, joint_cov)
         observed: list[tuple[int, np.ndarray, np.ndarray]] = []
         to_insert: list[LandmarkRecord] = []
         l_new, c_new = point_to_world(R, p, z_base, R_z)

@@ -68,7 +68,7 @@ class RockLandmarks:
         J[:, :, 3:] = R_rel
         R_kf = R_rel @ Rz @ R_rel.T + J @ C_rel @ np.swapaxes(J, 1, 2)
         fa = self.store.associate_frame(
-            obs.t, kf, frame.T_world_kf @ T_rel, C_rel, z, Rz, np.asarray(obs.size_m), z_kf, R_kf
+            obs.t, kf, frame.T_world_kf @ T_rel, C_rel, z, Rz, np.asarray(obs.size_m), z_kf, R_kf, frame.cov_growth
         )
         for lid, zk, Rk in fa.observed:
             if lid in self._seen_on_kf:
