@@ -5,6 +5,7 @@ carry a heading arrow, and a run streams live, pose by pose while it runs, to a 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -95,20 +96,20 @@ def _entities_when_written(path: Path, wanted: set[str], timeout_s: float = 60.0
     return ents
 
 
-def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
-    port, saved = _free_port(), tmp_path / "received.rrd"
+@contextlib.contextmanager
+def _saving_viewer(saved: Path):
+    """A rerun viewer on a free 127.0.0.1 port that saves what it receives to ``saved`` as it
+    arrives; yields its gRPC URL once it listens, and stops it afterwards."""
+    port = _free_port()
     viewer = subprocess.Popen([RERUN, "--bind", "127.0.0.1", "--port", str(port), "--save", str(saved)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    wanted = {"/synth/ekf_reloc/path", "/synth/ekf_reloc/pose", "/synth/errors/position/ekf_reloc"}
     try:
         for _ in range(200):
             with socket.socket() as s:
                 if s.connect_ex(("127.0.0.1", port)) == 0:
                     break
             time.sleep(0.1)
-        url = rerun_log.viewer_url(port)
-        assert main(["run", str(synth_dir), "--backend", "ekf", "--out", str(tmp_path / "o"), "--connect", url]) == 0
-        ents = _entities_when_written(saved, wanted)
+        yield rerun_log.viewer_url(port)
     finally:
         # the viewer's own shutdown is not under test (under load it has taken > 30 s)
         viewer.send_signal(signal.SIGINT)
@@ -117,6 +118,14 @@ def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
         except subprocess.TimeoutExpired:
             viewer.kill()
             viewer.wait()
+
+
+def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
+    saved = tmp_path / "received.rrd"
+    wanted = {"/synth/ekf_reloc/path", "/synth/ekf_reloc/pose", "/synth/errors/position/ekf_reloc"}
+    with _saving_viewer(saved) as url:
+        assert main(["run", str(synth_dir), "--backend", "ekf", "--out", str(tmp_path / "o"), "--connect", url]) == 0
+        ents = _entities_when_written(saved, wanted)
     assert wanted <= ents
 
 
@@ -142,19 +151,12 @@ def test_a_run_streams_pose_by_pose_while_it_runs(synth_dir, tmp_path):
     from fgslam.inputs import load_sim_dir, truth_of
     from fgslam.runner import run_backend
 
-    port, saved = _free_port(), tmp_path / "received.rrd"
-    viewer = subprocess.Popen([RERUN, "--bind", "127.0.0.1", "--port", str(port), "--save", str(saved)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    saved = tmp_path / "received.rrd"
     pose = "/synth/ekf/pose"
-    try:
-        for _ in range(200):
-            with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", port)) == 0:
-                    break
-            time.sleep(0.1)
+    with _saving_viewer(saved) as url:
         inputs = load_sim_dir(synth_dir)
         gt = truth_of(inputs)
-        live = rerun_log.LiveRun(rerun_log.viewer_url(port), "synth", "ekf", inputs, gt)
+        live = rerun_log.LiveRun(url, "synth", "ekf", inputs, gt)
         t_mid = 0.5 * (gt.t[0] + gt.t[-1])
         seen: dict[str, list[float]] = {}
 
@@ -172,13 +174,6 @@ def test_a_run_streams_pose_by_pose_while_it_runs(synth_dir, tmp_path):
         res = run_backend(make_backend("ekf", inputs.initial), stream(), observer=live)
         live.finish(res)
         ents = _entities_when_written(saved, {"/synth/ekf/path", "/synth/errors/position/ekf_final"})
-    finally:
-        viewer.send_signal(signal.SIGINT)
-        try:
-            viewer.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            viewer.kill()
-            viewer.wait()
     mid = seen["mid"]
     assert mid and t_mid - 2 * rerun_log.LIVE_STEP_S <= mid[-1] < t_mid  # up to the pause, nothing later
     assert len(mid) >= 0.4 * (t_mid - gt.t[0]) / rerun_log.LIVE_STEP_S  # about one a second (or per 0.5 m)
