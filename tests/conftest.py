@@ -1,11 +1,19 @@
-"""Shared fixtures: the ERC assets in ../shared (optional), seeded RNGs."""
+"""Shared fixtures: the ERC assets in ../shared (optional), seeded RNGs; property tests derandomized
+(the same examples on every run: a seeded process, like the rest; ``HYPOTHESIS_PROFILE=explore``
+searches afresh)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
+
+settings.register_profile("seeded", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -17,7 +17,9 @@ association). Where the wheels turned at least ``min_wheel_distance_m``, the sli
 
 with the sigma of the visual translation along ``u``. A check *detects slip* when ``|s|`` exceeds
 both ``min_slip`` (below it the back-ends' own slip noise covers the error) and ``gate_sigma``
-sigmas. From then on every odometry step's forward speed is scaled by ``1 - s`` and its forward
+sigmas (the registration's covariance scaled by ``visual_cov_scale``, measured); after
+``confirm_checks`` consecutive such checks (the slip they saw, uncorrected, is added once as
+variance), every odometry step's forward speed is scaled by ``1 - s`` and its forward
 variance grows by ``(sigma_s^2 + change_sigma^2) * d * L`` (``d`` the step's wheel distance, ``L``
 the wheel distance of the check that measured ``s``: the slip is taken as correlated over one check
 interval, so over ``L`` the added sigma is ``sqrt(sigma_s^2 + change_sigma^2) * L``), until a check
@@ -67,6 +69,14 @@ class SlipConfig:
     search_margin_m: NonNegative = 0.3  # visual translations looked for up to this beyond [0, d_wheel]
     min_slip: Fraction = 0.3
     gate_sigma: Positive = 3.0
+    # the visual translation's covariance (a weighted mean over pairs taken as independent) is
+    # multiplied by this: on plains-2km (seed 0, 8727 determined checks) its errors against the
+    # truth were 0.98 / 2.0 / 4.9 sigma at the median / p90 / p99 (0.67 / 1.64 / 2.58 for a
+    # Gaussian), and 45 checks "saw" 30-91 % slip where the truth slipped under 10 %
+    visual_cov_scale: Positive = 2.25
+    # consecutive slipping checks (same sign) before a correction starts: a stuck rover stays
+    # stuck, a chance registration error does not repeat
+    confirm_checks: PositiveInt = 2
     change_sigma: NonNegative = 0.3  # how much the slip ratio may change between two checks
     max_skid: Fraction = 0.5  # the slip ratio applied is clipped to [-max_skid, 1]
     hold_s: Positive = 5.0  # a detected slip is applied this long after the last check that measured it
@@ -168,10 +178,12 @@ class _Reference:
 
 @dataclass(frozen=True)
 class SlipCheck:
-    """One determined check: its time, the kind compared, wheel and visual distance (m), the slip
-    ratio and its sigma, the inlier pairs, and whether it detected slip."""
+    """One determined check: its time and its reference frame's, the kind compared, wheel and
+    visual distance (m), the slip ratio and its sigma, the inlier pairs, and whether it detected
+    slip."""
 
     t: float
+    t_ref: float
     kind: str
     wheel_m: float
     visual_m: float
@@ -195,6 +207,9 @@ class SlipMonitor:
         self.n_undetermined = 0  # comparisons without a determined visual translation
         self.n_detections = 0  # checks that started a slip spell
         self.corrected_s = 0.0  # stream time under correction
+        self._streak, self._streak_sign = 0, 1.0  # consecutive slipping checks, and their sign
+        self._streak_wheel_m = 0.0  # the wheel distance of those checks
+        self._pending_var = 0.0  # forward variance for the first corrected step
 
     @property
     def active(self) -> bool:
@@ -222,9 +237,9 @@ class SlipMonitor:
             self._stop()
             return step
         self.corrected_s += step.dt
-        return dataclasses.replace(
-            step, v_mps=step.v_mps * (1.0 - self.slip),
-            extra_forward_var_m2=step.extra_forward_var_m2 + self._extra_var_per_m * abs(dist))
+        extra, self._pending_var = self._extra_var_per_m * abs(dist) + self._pending_var, 0.0
+        return dataclasses.replace(step, v_mps=step.v_mps * (1.0 - self.slip),
+                                   extra_forward_var_m2=step.extra_forward_var_m2 + extra)
 
     def observe(self, kind: str, obs) -> SlipCheck | None:
         """One frame of landmark kind ``kind`` (its points in base_link): compare it with the
@@ -247,7 +262,7 @@ class SlipMonitor:
             if vt is None:
                 self.n_undetermined += 1
             else:
-                check = self._decide(t, kind, ref.d, vt)
+                check = self._decide(t, ref.t, kind, ref.d, vt)
         self._refs[kind] = _Reference(t, xyz, cov)
         return check
 
@@ -266,18 +281,25 @@ class SlipMonitor:
         }
 
     # ---------------------------------------------------------------- internals
-    def _decide(self, t: float, kind: str, d_wheel: np.ndarray, vt: VisualTranslation) -> SlipCheck:
+    def _decide(self, t: float, t_ref: float, kind: str, d_wheel: np.ndarray, vt: VisualTranslation) -> SlipCheck:
         cfg = self.cfg
         wheel = float(np.linalg.norm(d_wheel))
         u = d_wheel / wheel
         s = 1.0 - float(vt.d_m @ u) / wheel
-        sigma = math.sqrt(max(float(u @ vt.cov_m2 @ u), 0.0)) / wheel
+        sigma = math.sqrt(max(float(u @ vt.cov_m2 @ u), 0.0) * cfg.visual_cov_scale) / wheel
         slipping = abs(s) > max(cfg.min_slip, cfg.gate_sigma * sigma)
-        check = SlipCheck(t, kind, wheel, float(np.linalg.norm(vt.d_m)), s, sigma, vt.n_inliers, slipping)
+        check = SlipCheck(t, t_ref, kind, wheel, float(np.linalg.norm(vt.d_m)), s, sigma, vt.n_inliers, slipping)
         self.checks.append(check)
-        if slipping:
+        same = slipping and (self._streak == 0 or s * self._streak_sign > 0)
+        self._streak = self._streak + 1 if same else int(slipping)
+        self._streak_wheel_m = (self._streak_wheel_m + wheel if same else wheel) if slipping else 0.0
+        self._streak_sign = math.copysign(1.0, s)
+        if slipping and (self.active or self._streak >= cfg.confirm_checks):
             if not self.active:
                 self.n_detections += 1
+                # the slip of the checks that confirmed it went in uncorrected: its size, once, as
+                # variance of the next corrected step
+                self._pending_var = (s * self._streak_wheel_m) ** 2
                 log.info("wheel slip %.0f %% (+- %.0f %%) detected at t=%.2f s by %s: wheels %.2f m, "
                          "landmarks %.2f m", 100 * s, 100 * sigma, t, kind, wheel, check.visual_m)
             self.slip = float(np.clip(s, -cfg.max_skid, 1.0))
@@ -285,13 +307,14 @@ class SlipMonitor:
                 self.slip = 1e-12
             self._extra_var_per_m = (sigma**2 + cfg.change_sigma**2) * wheel
             self._active_until = t + cfg.hold_s
-        elif self.active:
+        elif not slipping and self.active:
             log.info("wheel slip ends at t=%.2f s (%s: wheels %.2f m, landmarks %.2f m)", t, kind, wheel,
                      check.visual_m)
             self._stop()
         return check
 
     def _stop(self) -> None:
+        self._pending_var = 0.0
         self.slip = 0.0
         self._extra_var_per_m = 0.0
         self._active_until = -math.inf

@@ -58,7 +58,7 @@ def test_visual_translation_recovers_the_motion_within_its_covariance(seed, dx, 
     assert vt is not None
     e = vt.d_m - d_true
     assert e @ np.linalg.solve(vt.cov_m2, e) < 25.0  # chi2(3) far tail: 5 sigma
-    assert vt.n_inliers >= 10
+    assert vt.n_inliers >= 6  # of ~16 rocks in both frames
 
 
 def test_visual_translation_declines_without_enough_common_landmarks():
