@@ -170,7 +170,10 @@ class SmootherConfig:
     # so with C(0) each one cost ~100 ms of Python (rocky-1km, first 600 s, window 120 s: estimate
     # -> consider 43.2 -> 28.3 s, keyframe p99 752 -> 173 ms, ATE 0.242 -> 0.206 m, position NEES
     # 1.92 -> 4.05, slightly optimistic; C(0) had learned yaw 0.15 -> 0.12 deg sigma in 600 s).
-    # Long traverses default to "consider" (fgslam.long_traverse)
+    # Long traverses default to "consider" (fgslam.long_traverse). Over longer stretches it is
+    # overconfident: the calibration error is shared by every observation, which "consider" takes as
+    # independent (plains-2km, first 3000 s, no fixes: NEES 54, ATE 1.26 m; "estimate" 5.9, 2.07 m;
+    # docs/app.md)
     calibration_mode: Literal["estimate", "consider"] = "estimate"
     # "consider": the calibration's covariance term is multiplied by this. One calibration error
     # is common to every observation, which the factors take as independent: a rock seen from n
