@@ -13,6 +13,7 @@ variances follow :class:`ekf.config.MotionNoiseConfig`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -76,8 +77,5 @@ def split_step(step: OdometryStep, t: float) -> tuple[OdometryStep, OdometryStep
     dR = step.R_ref_base0.T @ step.R_ref_base1
     R_t = step.R_ref_base0 @ exp_so3(a * log_so3(dR))
     extra = step.extra_forward_var_m2
-    first = OdometryStep(step.t0, t, step.v_mps, step.yaw_rate_cmd_radps, step.R_ref_base0, R_t, step.gyro_radps,
-                         a * extra)
-    second = OdometryStep(t, step.t1, step.v_mps, step.yaw_rate_cmd_radps, R_t, step.R_ref_base1, step.gyro_radps,
-                          (1.0 - a) * extra)
-    return first, second
+    return (dataclasses.replace(step, t1=t, R_ref_base1=R_t, extra_forward_var_m2=a * extra),
+            dataclasses.replace(step, t0=t, R_ref_base0=R_t, extra_forward_var_m2=(1.0 - a) * extra))

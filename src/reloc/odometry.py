@@ -145,6 +145,19 @@ class OdometryAssembler:
         return dist / dt, turn / dt
 
 
+_E1 = np.array([1.0, 0.0, 0.0])
+
+
+def step_translation(step: OdometryStep, dR: np.ndarray | None = None) -> np.ndarray:
+    """Translation (3,) of base_link over ``step`` in its start frame: the commanded distance
+    along the chord of the step's arc, the bisector of the start and end headings (``e1 + dR e1``),
+    exact for a constant-curvature arc and free of trigonometry (this runs once per IMU sample).
+    ``dR``: ``step.dR_base`` when already computed."""
+    dR = step.dR_base if dR is None else dR
+    chord = dR[:, 0] + _E1
+    return chord * (step.v_mps * step.dt / max(float(np.sqrt(chord @ chord)), 1e-12))
+
+
 def pitch_rad(step: OdometryStep) -> float:
     """|pitch| (rad) of base_link x over the horizontal at the end of ``step`` (IMU gravity reference)."""
     return math.asin(min(abs(float(step.R_ref_base1[2, 0])), 1.0))

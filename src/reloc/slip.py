@@ -44,11 +44,10 @@ from scipy.spatial import cKDTree
 
 from reloc.config import Interval, NonNegative, Positive, PositiveInt, checked
 from reloc.errors import ConfigError
-from reloc.odometry import OdometryStep
+from reloc.odometry import OdometryStep, step_translation
 
 log = logging.getLogger(__name__)
 
-_E1 = np.array([1.0, 0.0, 0.0])
 Fraction = Annotated[float, Interval(ge=0.0, le=1.0)]
 
 
@@ -224,10 +223,9 @@ class SlipMonitor:
         dist = step.v_mps * step.dt
         if self._refs:
             dR = step.dR_base
-            chord = dR[:, 0] + _E1
-            chord *= dist / max(float(np.sqrt(chord @ chord)), 1e-12)
+            d = step_translation(step, dR)
             for ref in self._refs.values():
-                ref.d = ref.d + ref.R @ chord
+                ref.d = ref.d + ref.R @ d
                 ref.R = ref.R @ dR
         if not self.active:
             return step

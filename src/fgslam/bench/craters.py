@@ -18,6 +18,7 @@ within ``wrong_fix_m`` of the truth. A fix farther than that (any attempt) is a 
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -154,7 +155,7 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         if counted is not None:
             should = [(t, n, a) for t, n, a in counted.records if n >= cfg.min_catalogued]
             ok = 0
-            failed: dict[str, int] = {}  # why the attempts that should have relocalized did not
+            failed: Counter[str] = Counter()  # why the attempts that should have relocalized did not
             for _, _, a in should:
                 good = False
                 if a.fix is not None:
@@ -162,22 +163,14 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
                     good = err <= cfg.wrong_fix_m
                 ok += int(good)
                 if not good:
-                    why = "wrong fix" if a.fix is not None else a.status
-                    failed[why] = failed.get(why, 0) + 1
+                    failed["wrong fix" if a.fix is not None else a.status] += 1
             row["crater_reloc"] = {
                 "attempts": len(counted.records), "with_min_catalogued": len(should), "succeeded": ok,
-                "success_rate": ok / len(should) if should else None, "failed_by_status": failed,
-                "statuses": _count(a.status for _, _, a in counted.records),
+                "success_rate": ok / len(should) if should else None, "failed_by_status": dict(failed),
+                "statuses": dict(Counter(a.status for _, _, a in counted.records)),
                 "median_catalogued_mapped": float(np.median([n for _, n, _ in counted.records])) if counted.records else 0.0,
             }
         out["passes"][name] = row
-    return out
-
-
-def _count(items) -> dict[str, int]:
-    out: dict[str, int] = {}
-    for k in items:
-        out[k] = out.get(k, 0) + 1
     return out
 
 

@@ -50,11 +50,14 @@ from reloc.odometry import OdometryStep
 log = logging.getLogger(__name__)
 
 
+def _psd(C: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """The symmetric part of ``C`` with its eigenvalues clipped to at least ``floor``."""
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    return (V * np.maximum(w, floor)) @ V.T
+
+
 def _pose_cov_prior(initial: PoseEstimate) -> np.ndarray:
-    C = cov_world_to_gtsam(initial.T_world_base[:3, :3], np.asarray(initial.cov, dtype=float))
-    C = 0.5 * (C + C.T)
-    w, V = np.linalg.eigh(C)
-    return (V * np.maximum(w, 1e-10)) @ V.T
+    return _psd(cov_world_to_gtsam(initial.T_world_base[:3, :3], np.asarray(initial.cov, dtype=float)), 1e-10)
 
 
 class Isam2Smoother(LateFixes, Backend):
@@ -182,8 +185,7 @@ class Isam2Smoother(LateFixes, Backend):
                 continue
             G = self._growth.get(int(i))
             if G is None:
-                w, V = np.linalg.eigh(0.5 * (C_now + C_now.T) - 0.5 * (self.kfs.online_cov[i] + self.kfs.online_cov[i].T))
-                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], (V * np.maximum(w, 0.0)) @ V.T)
+                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], _psd(C_now - self.kfs.online_cov[i]))
             out[idx == i] = G
         return out
 

@@ -14,22 +14,18 @@ import numpy as np
 
 from fgslam.smoother.config import OdometryNoiseConfig
 from reloc.geometry import skew
-from reloc.odometry import OdometryStep, pitch_rad
+from reloc.odometry import OdometryStep, pitch_rad, step_translation
 
 
 def step_motion(step: OdometryStep, cfg: OdometryNoiseConfig) -> tuple[np.ndarray, np.ndarray]:
     """(4, 4) base-frame motion ``T_base0_base1`` of one step and its (6, 6) noise covariance.
 
-    The translation runs along the chord of the step's arc, i.e. the bisector of the start and end
-    headings (``e1 + dR e1``), which is exact for a constant-curvature arc and needs no
-    trigonometry (this runs once per IMU sample)."""
+    The translation runs along the chord of the step's arc (:func:`reloc.odometry.step_translation`)."""
     dR = step.dR_base
     d_m = step.v_mps * step.dt
-    chord = dR[:, 0] + _E1
-    chord /= np.sqrt(chord @ chord)
     dT = np.eye(4)
     dT[:3, :3] = dR
-    dT[:3, 3] = chord * d_m
+    dT[:3, 3] = step_translation(step, dR)
     ad = abs(d_m)
     slope = pitch_rad(step)
     s_f2 = (cfg.sigma_forward_m_per_sqrtm**2 + (cfg.sigma_forward_m_per_sqrtm_per_rad * slope) ** 2) * ad
@@ -39,8 +35,6 @@ def step_motion(step: OdometryStep, cfg: OdometryNoiseConfig) -> tuple[np.ndarra
     Q = np.diag([s_r2, s_r2, s_r2, s_f2, s_l2, s_l2])
     return dT, Q
 
-
-_E1 = np.array([1.0, 0.0, 0.0])
 
 
 def adjoint_inverse(T: np.ndarray) -> np.ndarray:

@@ -151,7 +151,6 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
             _log_online(rec, world, key, along_path(run.online), gt)
         _log_fixes(rec, world, key, run.outcomes)
     _log_matches(rec, world, attempts)
-    rec.reset_time()
 
 
 def _log_matches(rec, world: str, attempts: list) -> None:
