@@ -51,10 +51,17 @@ def process_noise_body(
 
 
 def propagate(
-    p_world: np.ndarray, R_world_base: np.ndarray, step: OdometryStep, cfg: MotionNoiseConfig
+    p_world: np.ndarray, R_world_base: np.ndarray, step: OdometryStep, cfg: MotionNoiseConfig,
+    p_lin: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One prediction: returns ``p1`` (3,), ``R1`` (3, 3), the error-state Jacobian ``F`` (6, 6)
-    and the process noise ``Q`` (6, 6), both over ``[dp_world, dtheta_world]``."""
+    and the process noise ``Q`` (6, 6), both over ``[dp_world, dtheta_world]``.
+
+    ``p_lin``: the position the previous prediction reached (first-estimate Jacobians): ``F``'s
+    rotation-to-position block is then ``-[p1 - p_lin]x`` instead of ``-[p1 - p_world]x``, so a
+    yaw of the whole world about z stays an unobservable direction across the updates made in
+    between (Huang, Mourikis and Roumeliotis, "A First-Estimates Jacobian EKF for improving SLAM
+    consistency", 2008)."""
     dR = step.R_ref_base0.T @ step.R_ref_base1
     rotvec = log_so3(dR)
     R_mid = R_world_base @ exp_so3(0.5 * rotvec)
@@ -62,7 +69,7 @@ def propagate(
     d_world = R_mid[:, 0] * (step.v_mps * step.dt)
     p1 = p_world + d_world
     F = np.eye(6)
-    F[:3, 3:] = -skew(d_world)
+    F[:3, 3:] = -skew(d_world if p_lin is None else p1 - p_lin)
     var_t, var_r = process_noise_body(step, cfg, rotvec / step.dt)
     Q = np.zeros((6, 6))
     Q[:3, :3] = (R_mid * var_t) @ R_mid.T

@@ -64,6 +64,17 @@ def calibration_jacobians(s: FilterState, q: np.ndarray) -> tuple[np.ndarray, np
     return H, -H
 
 
+def yaw_column(R_world_base: np.ndarray, p_lin: np.ndarray, l_lin: np.ndarray) -> np.ndarray:
+    """(M, 3): the Jacobian of ``z = R^T (l - p)`` w.r.t. a yaw about world z, at the first
+    estimates ``p_lin`` (3,), ``l_lin`` (M, 3): ``R^T [l - p]x e_z``. Only this column couples
+    the unobservable yaw to the landmarks' lever arms; taking it at the first estimates keeps a
+    yaw of the whole world unobservable (the other columns stay at the current estimate, which
+    a first estimate decimetres off would spoil)."""
+    d = np.asarray(l_lin, dtype=float).reshape(-1, 3) - np.asarray(p_lin, dtype=float)
+    col = np.stack([d[:, 1], -d[:, 0], np.zeros(len(d))], axis=1)  # d x e_z
+    return col @ R_world_base
+
+
 class RockUpdate:
     """Stateless apart from its counters; operates on a :class:`FilterState` in place."""
 
@@ -122,6 +133,8 @@ class RockUpdate:
             cand = np.flatnonzero(near & (s.book.kind == self.code))  # rocks only
             zhat = zhat_all[cand]
         H_pose, H_l = point_jacobians(s.R_world_base, s.p_world, s.l_world[cand])
+        if s.first_estimates:
+            H_pose[:, :, 5] = yaw_column(s.R_world_base, *s.jacobian_points(cand))
         if s.calibrated:
             H_pose = np.concatenate([H_pose, calibration_jacobians(s, zhat)[0]], axis=2)
         S_hat = self._predicted_cov(s, cand, H_pose, H_l)

@@ -77,6 +77,9 @@ class EkfSlam(Backend):
             t_last_attitude=float(initial.t),
             t_last_checkpoint=float(initial.t),
         )
+        if self.config.first_estimate_jacobians:
+            self._s.p_lin = self._s.p_world.copy()
+            self._s.l_lin = np.zeros((0, 3))
         self._kinds = kind_updates(self.config)
         self._hist = History(self.config.history_s)
         self._traj = RowBuffer(1 + 16 + POSE_DIM * POSE_DIM)  # t, T_world_base, pose covariance
@@ -85,6 +88,7 @@ class EkfSlam(Backend):
                        "n_late_fixes": 0, "n_replayed_entries": 0, "n_attitude_updates": 0}
         self._reject_reasons: dict[str, int] = {}
         self._count["n_consensus_resets"] = 0
+        self._count["n_first_estimate_resets"] = 0  # pose corrections beyond first_estimate_tol_m
         self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
         self._reset_Q: dict[tuple, np.ndarray] = {}  # inflation applied with each consensus fix (for replays)
         self._record()
@@ -227,7 +231,9 @@ class EkfSlam(Backend):
     # ------------------------------------------------------------------ processing (also used by replay)
     def _do_step(self, step: OdometryStep) -> None:
         s, cfg = self._s, self.config
-        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion)
+        if s.refresh_first_estimates(cfg.first_estimate_tol_m) and not self._replaying:
+            self._count["n_first_estimate_resets"] += 1
+        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin)
         P = s.P
         Ppp = F @ P[:POSE_DIM, :POSE_DIM] @ F.T + Q
         if s.n_landmarks:
@@ -236,6 +242,8 @@ class EkfSlam(Backend):
             P[POSE_DIM:, :3] = P[:3, POSE_DIM:].T
         P[:POSE_DIM, :POSE_DIM] = 0.5 * (Ppp + Ppp.T)
         s.p_world, s.R_world_base, s.t = p1, R1, step.t1
+        if s.first_estimates:
+            s.p_lin = p1.copy()
         s.t_input = max(s.t_input, step.t1)
         s.n_steps_since_orthonormalise += 1
         if s.n_steps_since_orthonormalise >= _ORTHONORMALISE_EVERY:
@@ -298,6 +306,7 @@ class EkfSlam(Backend):
             self._count["n_consensus_resets"] += 1
         s.P, res = joseph_update(s.P, np.arange(POSE_DIM), H, nu, R_fix)
         s.inject(res.dx)
+        s.reset_first_estimates()
         horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
         s.fix_times = tuple(t for t in s.fix_times if t >= horizon) + (fix.t_meas,)
         self._record()

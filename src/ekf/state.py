@@ -58,6 +58,13 @@ class FilterState:
     calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
     calib_s: float = 1.0  # measured / true range
     t_last_frame: dict = field(default_factory=dict)  # kind name -> time of its last frame used
+    # First-estimate Jacobians (EkfConfig.first_estimate_jacobians): the position the pose was
+    # propagated to (its prior at the next update) and each landmark's position as initialised
+    # from that prior. The Jacobians that couple rotation to position are evaluated there, so
+    # the linearised filter keeps SLAM's unobservable directions (a common translation, a yaw
+    # about world z) and gains no yaw information from landmarks alone. None: off.
+    p_lin: np.ndarray | None = None  # (3,)
+    l_lin: np.ndarray | None = None  # (n, 3)
 
     @property
     def calibrated(self) -> bool:
@@ -85,6 +92,8 @@ class FilterState:
             head=self.head,
             calib_R=self.calib_R.copy(),
             calib_s=self.calib_s,
+            p_lin=None if self.p_lin is None else self.p_lin.copy(),
+            l_lin=None if self.l_lin is None else self.l_lin.copy(),
         )
 
     def inject(self, dx: np.ndarray) -> None:
@@ -96,6 +105,37 @@ class FilterState:
             self.calib_s = self.calib_s + float(dx[9])
         if self.n_landmarks:
             self.l_world = self.l_world + dx[self.head:].reshape(-1, 3)
+
+    @property
+    def first_estimates(self) -> bool:
+        return self.p_lin is not None
+
+    def jacobian_points(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The pose position (3,) and landmark positions (k, 3) (``rows``, all when None) that the
+        rotation-to-position Jacobians are evaluated at: the first estimates when kept, else the
+        current estimate."""
+        if self.p_lin is None:
+            l = self.l_world
+            return self.p_world, l if rows is None else l[rows]
+        return self.p_lin, self.l_lin if rows is None else self.l_lin[rows]
+
+    def reset_first_estimates(self) -> None:
+        """Linearise at the current estimate from now on (after a global fix, which observes
+        what SLAM alone cannot, the old first estimates would only be a worse linearisation)."""
+        if self.p_lin is not None:
+            self.p_lin = self.p_world.copy()
+            self.l_lin = self.l_world.copy()
+
+    def refresh_first_estimates(self, tol_m: float) -> bool:
+        """Re-linearise everything at the current estimate when a correction has moved the pose
+        more than ``tol_m`` (m) from its first estimate (a re-anchoring on a map the filter had
+        wrong, where the first estimate is no longer a linearisation point). Landmarks keep
+        theirs whatever their corrections: re-linearising a landmark gives the filter yaw
+        information it does not have. True when it re-linearised."""
+        if self.p_lin is None or float(np.sum((self.p_world - self.p_lin) ** 2)) <= tol_m * tol_m:
+            return False
+        self.reset_first_estimates()
+        return True
 
     def orthonormalise(self) -> None:
         """Remove the round-off drift of the rotation matrices."""
@@ -138,6 +178,8 @@ class FilterState:
             block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += cov_meas_world[i]
         P_new[n_old:, n_old:] = 0.5 * (block + block.T)
         self.P = P_new
+        if self.l_lin is not None:  # initialised from the pose's first estimate (same measurement)
+            self.l_lin = np.vstack([self.l_lin, l_new - (self.p_world - self.p_lin)])
         self.l_world = np.vstack([self.l_world, l_new])
 
     def keep_landmarks(self, keep: np.ndarray) -> None:
@@ -148,4 +190,6 @@ class FilterState:
         cols = np.concatenate([np.arange(self.head), self.landmark_cols(np.flatnonzero(keep))])
         self.P = take_symmetric(self.P, cols)
         self.l_world = self.l_world[keep]
+        if self.l_lin is not None:
+            self.l_lin = self.l_lin[keep]
         self.book.keep(keep)
