@@ -125,13 +125,16 @@ def relocalizer_calibration(cfg: SimConfig) -> dict:
 
 
 def backend_calibration(cfg: SimConfig) -> dict:
-    """The ``backend_overrides`` block the back-ends need for this run's stereo errors (the
-    calibration states of docs/ekf.md and docs/smoother.md, sized by the simulated errors); empty
-    when the systematic terms are off."""
-    st = cfg.sensors.stereo
+    """The ``backend_overrides`` block the back-ends need for this run's sensors, as a datasheet
+    gives them: the stereo calibration states of docs/ekf.md and docs/smoother.md sized by the
+    simulated errors, and the IMU's gyro bias figures for the EKF's yaw-rate bias state."""
+    st, imu = cfg.sensors.stereo, cfg.sensors.imu
+    ekf: dict = {"yaw_rate_bias_sigma_radps": imu.gyro_bias_sigma_radps,
+                 "yaw_rate_bias_walk_radps_rsqrt_s": imu.gyro_bias_walk_radps_rsqrt_s}
     if not (st.extrinsic_sigma_deg or st.depth_scale_sigma or st.centre_error_frac):
-        return {}
-    ekf: dict = {"rock_cov_scale": 4.0} if st.centre_error_frac else {}
+        return {"ekf": ekf}
+    if st.centre_error_frac:
+        ekf["rock_cov_scale"] = 4.0
     cal_e, cal_i = {}, {}
     if st.extrinsic_sigma_deg:
         cal_e.update(roll_pitch_sigma_deg=st.extrinsic_sigma_deg, yaw_sigma_deg=st.extrinsic_sigma_deg)

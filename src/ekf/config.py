@@ -113,6 +113,14 @@ class EkfConfig:
     # observe. With the current estimate (False) the filter's yaw sigma stayed at 0.2 deg for 3000 s
     # of plains-2km (no fixes) while its yaw error grew to 0.8 deg (docs/ekf.md, "Consistency")
     first_estimate_jacobians: bool = True
+    # The IMU's heading drifts at its gyro bias (roll and pitch it corrects from gravity itself),
+    # a constant rate that white rotation noise cannot represent: over 3000 s of plains-2km the
+    # IMU's heading was 0.48 deg off. With a sigma > 0 the filter estimates that rate as a state
+    # (rad/s about world z, this prior sigma, a random walk of bias_walk per sqrt(s)); the
+    # landmarks' relative rotations observe it. Defaults: a rover IMU of ~2 deg/h (the
+    # simulator's default IMU); `fgslam sim` writes its IMU's figures into backend.yaml; 0: no state
+    yaw_rate_bias_sigma_radps: NonNegative = 1.0e-5
+    yaw_rate_bias_walk_radps_rsqrt_s: NonNegative = 2.0e-7
     # when an update moves the pose more than this (m) from its first estimate, every first
     # estimate is replaced by the current one: a first-estimate Jacobian assumes small corrections
     # (after the consensus reset of a filter whose map is 1.5 m off, the landmark updates moved

@@ -52,7 +52,7 @@ def process_noise_body(
 
 def propagate(
     p_world: np.ndarray, R_world_base: np.ndarray, step: OdometryStep, cfg: MotionNoiseConfig,
-    p_lin: np.ndarray | None = None,
+    p_lin: np.ndarray | None = None, yaw_bias_radps: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One prediction: returns ``p1`` (3,), ``R1`` (3, 3), the error-state Jacobian ``F`` (6, 6)
     and the process noise ``Q`` (6, 6), both over ``[dp_world, dtheta_world]``.
@@ -61,11 +61,20 @@ def propagate(
     rotation-to-position block is then ``-[p1 - p_lin]x`` instead of ``-[p1 - p_world]x``, so a
     yaw of the whole world about z stays an unobservable direction across the updates made in
     between (Huang, Mourikis and Roumeliotis, "A First-Estimates Jacobian EKF for improving SLAM
-    consistency", 2008)."""
+    consistency", 2008). ``yaw_bias_radps``: the IMU heading's drift rate about world z, taken
+    out of the increment (``R1 = Exp(-b dt e_z) R0 dR``; its Jacobian is the filter's, see
+    :meth:`ekf.state.FilterState.yaw_bias_step`)."""
     dR = step.R_ref_base0.T @ step.R_ref_base1
     rotvec = log_so3(dR)
-    R_mid = R_world_base @ exp_so3(0.5 * rotvec)
-    R1 = R_world_base @ dR
+    R0 = R_world_base
+    if yaw_bias_radps:  # half the step's drift taken out before the mid rotation, half after
+        half = exp_so3(np.array([0.0, 0.0, -0.5 * yaw_bias_radps * step.dt]))
+        R0 = half @ R_world_base
+        R_mid = R0 @ exp_so3(0.5 * rotvec)
+        R1 = half @ R0 @ dR
+    else:
+        R_mid = R0 @ exp_so3(0.5 * rotvec)
+        R1 = R0 @ dR
     d_world = R_mid[:, 0] * (step.v_mps * step.dt)
     p1 = p_world + d_world
     F = np.eye(6)

@@ -137,6 +137,7 @@ class RockUpdate:
             H_pose[:, :, 5] = yaw_column(s.R_world_base, *s.jacobian_points(cand))
         if s.calibrated:
             H_pose = np.concatenate([H_pose, calibration_jacobians(s, zhat)[0]], axis=2)
+        H_pose = s.pad_head(H_pose)
         S_hat = self._predicted_cov(s, cand, H_pose, H_l)
 
         def joint_cov(det: np.ndarray, ci: np.ndarray) -> np.ndarray:
@@ -190,6 +191,7 @@ class RockUpdate:
             if s.calibrated:
                 G_cal = np.einsum("ij,njk->nik", s.R_world_base, calibration_jacobians(s, z[new])[1])
                 G_pose = np.concatenate([G_pose, G_cal], axis=2)
+            G_pose = s.pad_head(G_pose)
             s.append_landmarks(l_new, G_pose, cov_w)
             s.book.add(obs.t, size[new], self.code)
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,

@@ -65,6 +65,12 @@ class EkfSlam(Backend):
             head = POSE_DIM + CALIB_DIM
             prior = cal.prior_sigmas() ** 2  # a zero sigma keeps that term nominal
             P0 = np.block([[P0, np.zeros((POSE_DIM, CALIB_DIM))], [np.zeros((CALIB_DIM, POSE_DIM)), np.diag(prior)]])
+        n_calib = head - POSE_DIM
+        bias_col = -1
+        if self.config.yaw_rate_bias_sigma_radps > 0:  # the IMU heading's drift rate, last of the head
+            bias_col, head = head, head + 1
+            P0 = np.block([[P0, np.zeros((bias_col, 1))],
+                           [np.zeros((1, bias_col)), np.array([[self.config.yaw_rate_bias_sigma_radps ** 2]])]])
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
@@ -73,6 +79,8 @@ class EkfSlam(Backend):
             l_world=np.zeros((0, 3)),
             P=P0,
             head=head,
+            n_calib=n_calib,
+            bias_col=bias_col,
             book=LandmarkBook(self.config.book),
             t_last_attitude=float(initial.t),
             t_last_checkpoint=float(initial.t),
@@ -174,6 +182,10 @@ class EkfSlam(Backend):
         extra["fix_reject_reasons"] = dict(self._reject_reasons)
         if self._s.calibrated:
             extra["calibration"] = self.calibration()
+        if self._s.has_yaw_bias:
+            b = self._s.bias_col
+            extra["yaw_rate_bias_deg_per_h"] = {"estimate": round(math.degrees(self._s.yaw_bias) * 3600, 4),
+                                                "sigma": round(math.degrees(math.sqrt(self._s.P[b, b])) * 3600, 4)}
         return BackendStats(
             n_predict=c["n_predict"], n_landmark_frames=c["n_landmark_frames"],
             n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],
@@ -196,7 +208,7 @@ class EkfSlam(Backend):
 
     @property
     def state_vector_size(self) -> int:
-        """Dimension of the error state (6 [+ 4 calibration] + 3 x landmarks, tentative included)."""
+        """Dimension of the error state (6 [+ 4 calibration] [+ 1 yaw-rate bias] + 3 x landmarks, tentative included)."""
         return int(self._s.P.shape[0])
 
     def full_covariance(self) -> np.ndarray:
@@ -233,7 +245,7 @@ class EkfSlam(Backend):
         s, cfg = self._s, self.config
         if s.refresh_first_estimates(cfg.first_estimate_tol_m) and not self._replaying:
             self._count["n_first_estimate_resets"] += 1
-        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin)
+        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin, s.yaw_bias)
         P = s.P
         Ppp = F @ P[:POSE_DIM, :POSE_DIM] @ F.T + Q
         if s.n_landmarks:
@@ -241,6 +253,8 @@ class EkfSlam(Backend):
             P[:3, POSE_DIM:] += F[:3, 3:] @ P[3:6, POSE_DIM:]
             P[POSE_DIM:, :3] = P[:3, POSE_DIM:].T
         P[:POSE_DIM, :POSE_DIM] = 0.5 * (Ppp + Ppp.T)
+        if s.has_yaw_bias:
+            s.yaw_bias_step(step.dt, cfg.yaw_rate_bias_walk_radps_rsqrt_s ** 2 * step.dt)
         s.p_world, s.R_world_base, s.t = p1, R1, step.t1
         if s.first_estimates:
             s.p_lin = p1.copy()

@@ -1,11 +1,13 @@
 """The filter state: pose, landmarks, joint covariance, landmark book and schedule clocks.
 
 Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), (de (3), ds (1)),
-dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
+(db (1)), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
 :mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
 :class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
 holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
-(see :class:`reloc.calibration.CalibrationConfig`). The landmarks ``dl_i`` are 3D points of every
+(see :class:`reloc.calibration.CalibrationConfig`). The optional yaw-rate bias ``b`` (rad/s) is the
+rate at which the IMU's reported heading drifts about world z (its gyro bias, once the IMU's own
+gravity reference has taken out roll and pitch). The landmarks ``dl_i`` are 3D points of every
 landmark kind in one block; ``book.kind`` tags each with its kind (:mod:`ekf.kinds`).
 """
 
@@ -54,7 +56,10 @@ class FilterState:
     t_last_checkpoint: float
     n_steps_since_orthonormalise: int = 0
     fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
-    head: int = POSE_DIM  # states before the landmarks: the pose, and the calibration when on
+    head: int = POSE_DIM  # states before the landmarks: the pose, the calibration and the yaw-rate bias when on
+    n_calib: int = 0  # CALIB_DIM when the calibration is estimated, else 0
+    bias_col: int = -1  # column of the yaw-rate bias in P, -1 when not estimated
+    yaw_bias: float = 0.0  # rad/s: IMU heading drift about world z, R_imu ~ Exp(b t e_z) R_true
     calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
     calib_s: float = 1.0  # measured / true range
     t_last_frame: dict = field(default_factory=dict)  # kind name -> time of its last frame used
@@ -68,7 +73,11 @@ class FilterState:
 
     @property
     def calibrated(self) -> bool:
-        return self.head > POSE_DIM
+        return self.n_calib > 0
+
+    @property
+    def has_yaw_bias(self) -> bool:
+        return self.bias_col >= 0
 
     @property
     def n_landmarks(self) -> int:
@@ -90,6 +99,9 @@ class FilterState:
             n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
             fix_times=self.fix_times,
             head=self.head,
+            n_calib=self.n_calib,
+            bias_col=self.bias_col,
+            yaw_bias=self.yaw_bias,
             calib_R=self.calib_R.copy(),
             calib_s=self.calib_s,
             p_lin=None if self.p_lin is None else self.p_lin.copy(),
@@ -103,6 +115,8 @@ class FilterState:
         if self.calibrated:
             self.calib_R = exp_so3(dx[6:9]) @ self.calib_R
             self.calib_s = self.calib_s + float(dx[9])
+        if self.bias_col >= 0:
+            self.yaw_bias = self.yaw_bias + float(dx[self.bias_col])
         if self.n_landmarks:
             self.l_world = self.l_world + dx[self.head:].reshape(-1, 3)
 
@@ -143,6 +157,24 @@ class FilterState:
         if self.calibrated:
             self.calib_R = project_so3(self.calib_R)
         self.n_steps_since_orthonormalise = 0
+
+    def pad_head(self, J: np.ndarray) -> np.ndarray:
+        """Jacobians (..., w) over the first ``w`` head states, zero-padded to (..., head): the
+        states that do not enter a measurement (the yaw-rate bias) get zero columns."""
+        if J.shape[-1] == self.head:
+            return J
+        out = np.zeros(J.shape[:-1] + (self.head,))
+        out[..., : J.shape[-1]] = J
+        return out
+
+    def yaw_bias_step(self, dt: float, walk_var: float) -> None:
+        """The bias's share of a prediction over ``dt``: ``dtheta -= e_z dt db`` on the rows and
+        columns of P (O(n)), then the bias random walk ``walk_var`` (rad^2/s^2)."""
+        b, th = self.bias_col, 5  # world z of dtheta_world
+        P = self.P
+        P[th, :] -= dt * P[b, :]
+        P[:, th] -= dt * P[:, b]
+        P[b, b] += walk_var
 
     def landmark_cols(self, rows: np.ndarray) -> np.ndarray:
         """State columns (3k,) of the landmarks at ``rows`` (k,)."""

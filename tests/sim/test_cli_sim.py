@@ -102,6 +102,10 @@ def test_a_kilometre_run_sizes_the_matcher_to_its_catalog_and_its_world_yaml_is_
     cfg = load_compare_config(out / "backend.yaml")
     sigma = cfg.relocalizer.matcher["sigma_m"]
     assert sigma == 0.5
+    from sim.tiled.presets import TACTICAL_GYRO  # the preset's IMU, as a datasheet tells the EKF
+    ekf = cfg.backend_overrides["ekf"]
+    assert ekf["yaw_rate_bias_sigma_radps"] == TACTICAL_GYRO["gyro_bias_sigma_radps"]
+    assert ekf["yaw_rate_bias_walk_radps_rsqrt_s"] == TACTICAL_GYRO["gyro_bias_walk_radps_rsqrt_s"]
     cat = np.genfromtxt(out / "catalog.csv", delimiter=",", names=True)
     rid = np.loadtxt(out / "catalog_truth.csv", skiprows=1, dtype=np.int64)
     rocks = np.genfromtxt(out / "rocks_true.csv", delimiter=",", names=True, dtype=None)

@@ -35,7 +35,13 @@ def _set(over: dict, assignment: str) -> None:
         node = node.setdefault(k, {})
         if not isinstance(node, dict):
             raise SystemExit(f"--set {assignment!r}: {k} is not a block")
-    node[last] = yaml.safe_load(text)
+    value = yaml.safe_load(text)
+    if isinstance(value, str):  # YAML 1.1 reads 4e-9 as a string
+        try:
+            value = float(value)
+        except ValueError:
+            pass
+    node[last] = value
 
 
 def drift_table(directory: Path, backend: str, duration_s: float, bin_s: float = 250.0,
