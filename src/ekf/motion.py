@@ -52,7 +52,7 @@ def process_noise_body(
 
 def propagate(
     p_world: np.ndarray, R_world_base: np.ndarray, step: OdometryStep, cfg: MotionNoiseConfig,
-    p_lin: np.ndarray | None = None, yaw_bias_radps: float = 0.0,
+    p_lin: np.ndarray | None = None, yaw_bias_radps: float = 0.0, slip: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One prediction: returns ``p1`` (3,), ``R1`` (3, 3), the error-state Jacobian ``F`` (6, 6)
     and the process noise ``Q`` (6, 6), both over ``[dp_world, dtheta_world]``.
@@ -63,7 +63,8 @@ def propagate(
     between (Huang, Mourikis and Roumeliotis, "A First-Estimates Jacobian EKF for improving SLAM
     consistency", 2008). ``yaw_bias_radps``: the IMU heading's drift rate about world z, taken
     out of the increment (``R1 = Exp(-b dt e_z) R0 dR``; its Jacobian is the filter's, see
-    :meth:`ekf.state.FilterState.yaw_bias_step`)."""
+    :meth:`ekf.state.FilterState.yaw_bias_step`). ``slip``: the share of the commanded distance
+    not driven (``d = (1 - slip) v dt``; its Jacobian: :meth:`ekf.state.FilterState.slip_step`)."""
     dR = step.R_ref_base0.T @ step.R_ref_base1
     rotvec = log_so3(dR)
     R0 = R_world_base
@@ -75,7 +76,7 @@ def propagate(
     else:
         R_mid = R0 @ exp_so3(0.5 * rotvec)
         R1 = R0 @ dR
-    d_world = R_mid[:, 0] * (step.v_mps * step.dt)
+    d_world = R_mid[:, 0] * ((1.0 - slip) * step.v_mps * step.dt)
     p1 = p_world + d_world
     F = np.eye(6)
     F[:3, 3:] = -skew(d_world if p_lin is None else p1 - p_lin)

@@ -71,6 +71,11 @@ class EkfSlam(Backend):
             bias_col, head = head, head + 1
             P0 = np.block([[P0, np.zeros((bias_col, 1))],
                            [np.zeros((1, bias_col)), np.array([[self.config.yaw_rate_bias_sigma_radps ** 2]])]])
+        slip_col = -1
+        if self.config.slip_sigma > 0:  # the wheels' slip bias, after it
+            slip_col, head = head, head + 1
+            P0 = np.block([[P0, np.zeros((slip_col, 1))],
+                           [np.zeros((1, slip_col)), np.array([[self.config.slip_sigma ** 2]])]])
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
@@ -81,6 +86,7 @@ class EkfSlam(Backend):
             head=head,
             n_calib=n_calib,
             bias_col=bias_col,
+            slip_col=slip_col,
             book=LandmarkBook(self.config.book),
             t_last_attitude=float(initial.t),
             t_last_checkpoint=float(initial.t),
@@ -186,6 +192,9 @@ class EkfSlam(Backend):
             b = self._s.bias_col
             extra["yaw_rate_bias_deg_per_h"] = {"estimate": round(math.degrees(self._s.yaw_bias) * 3600, 4),
                                                 "sigma": round(math.degrees(math.sqrt(self._s.P[b, b])) * 3600, 4)}
+        if self._s.has_slip:
+            g = self._s.slip_col
+            extra["slip"] = {"estimate": round(self._s.slip, 5), "sigma": round(math.sqrt(self._s.P[g, g]), 5)}
         return BackendStats(
             n_predict=c["n_predict"], n_landmark_frames=c["n_landmark_frames"],
             n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],
@@ -208,7 +217,7 @@ class EkfSlam(Backend):
 
     @property
     def state_vector_size(self) -> int:
-        """Dimension of the error state (6 [+ 4 calibration] [+ 1 yaw-rate bias] + 3 x landmarks, tentative included)."""
+        """Dimension of the error state (6 [+ 4 calibration] [+ 1 yaw-rate bias] [+ 1 slip] + 3 x landmarks, tentative included)."""
         return int(self._s.P.shape[0])
 
     def full_covariance(self) -> np.ndarray:
@@ -245,7 +254,8 @@ class EkfSlam(Backend):
         s, cfg = self._s, self.config
         if s.refresh_first_estimates(cfg.first_estimate_tol_m) and not self._replaying:
             self._count["n_first_estimate_resets"] += 1
-        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin, s.yaw_bias)
+        p0 = s.p_world
+        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin, s.yaw_bias, s.slip)
         P = s.P
         Ppp = F @ P[:POSE_DIM, :POSE_DIM] @ F.T + Q
         if s.n_landmarks:
@@ -255,6 +265,8 @@ class EkfSlam(Backend):
         P[:POSE_DIM, :POSE_DIM] = 0.5 * (Ppp + Ppp.T)
         if s.has_yaw_bias:
             s.yaw_bias_step(step.dt, cfg.yaw_rate_bias_walk_radps_rsqrt_s ** 2 * step.dt)
+        if s.has_slip:
+            s.slip_step(p1 - p0, cfg.slip_walk_rsqrt_s ** 2 * step.dt)
         s.p_world, s.R_world_base, s.t = p1, R1, step.t1
         if s.first_estimates:
             s.p_lin = p1.copy()

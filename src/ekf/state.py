@@ -1,13 +1,15 @@
 """The filter state: pose, landmarks, joint covariance, landmark book and schedule clocks.
 
 Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), (de (3), ds (1)),
-(db (1)), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
+(db (1)), (dg (1)), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
 :mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
 :class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
 holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
 (see :class:`reloc.calibration.CalibrationConfig`). The optional yaw-rate bias ``b`` (rad/s) is the
 rate at which the IMU's reported heading drifts about world z (its gyro bias, once the IMU's own
-gravity reference has taken out roll and pitch). The landmarks ``dl_i`` are 3D points of every
+gravity reference has taken out roll and pitch). The optional slip ``g`` is the share of the
+commanded distance the wheels lose to the soil (``v_true = (1 - g) v``), a bias that a white model
+of slip cannot represent. The landmarks ``dl_i`` are 3D points of every
 landmark kind in one block; ``book.kind`` tags each with its kind (:mod:`ekf.kinds`).
 """
 
@@ -60,6 +62,8 @@ class FilterState:
     n_calib: int = 0  # CALIB_DIM when the calibration is estimated, else 0
     bias_col: int = -1  # column of the yaw-rate bias in P, -1 when not estimated
     yaw_bias: float = 0.0  # rad/s: IMU heading drift about world z, R_imu ~ Exp(b t e_z) R_true
+    slip_col: int = -1  # column of the wheel slip in P, -1 when not estimated
+    slip: float = 0.0  # the share of the commanded distance not driven: v_true = (1 - slip) v
     calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
     calib_s: float = 1.0  # measured / true range
     t_last_frame: dict = field(default_factory=dict)  # kind name -> time of its last frame used
@@ -78,6 +82,10 @@ class FilterState:
     @property
     def has_yaw_bias(self) -> bool:
         return self.bias_col >= 0
+
+    @property
+    def has_slip(self) -> bool:
+        return self.slip_col >= 0
 
     @property
     def n_landmarks(self) -> int:
@@ -102,6 +110,8 @@ class FilterState:
             n_calib=self.n_calib,
             bias_col=self.bias_col,
             yaw_bias=self.yaw_bias,
+            slip_col=self.slip_col,
+            slip=self.slip,
             calib_R=self.calib_R.copy(),
             calib_s=self.calib_s,
             p_lin=None if self.p_lin is None else self.p_lin.copy(),
@@ -117,6 +127,8 @@ class FilterState:
             self.calib_s = self.calib_s + float(dx[9])
         if self.bias_col >= 0:
             self.yaw_bias = self.yaw_bias + float(dx[self.bias_col])
+        if self.slip_col >= 0:
+            self.slip = self.slip + float(dx[self.slip_col])
         if self.n_landmarks:
             self.l_world = self.l_world + dx[self.head:].reshape(-1, 3)
 
@@ -175,6 +187,16 @@ class FilterState:
         P[th, :] -= dt * P[b, :]
         P[:, th] -= dt * P[:, b]
         P[b, b] += walk_var
+
+    def slip_step(self, d_world: np.ndarray, walk_var: float) -> None:
+        """The slip's share of a prediction that drove ``d_world`` (3,) (the commanded motion
+        times ``1 - slip``): ``dp -= d_world / (1 - slip) dslip`` on the rows and columns of P
+        (O(n)), then the slip's random walk ``walk_var``."""
+        g, u = self.slip_col, d_world / (1.0 - self.slip)
+        P = self.P
+        P[:3, :] -= np.outer(u, P[g, :])
+        P[:, :3] -= np.outer(P[:, g], u)
+        P[g, g] += walk_var
 
     def landmark_cols(self, rows: np.ndarray) -> np.ndarray:
         """State columns (3k,) of the landmarks at ``rows`` (k,)."""
