@@ -1,6 +1,6 @@
 """First-estimate Jacobians: landmarks alone carry no information on the global position and yaw
-(SLAM's unobservable directions), so the filter's covariance along them never falls below the
-start's. With Jacobians at the current estimate the linearised filter observes a yaw it cannot
+(SLAM's unobservable directions), nor on the stereo range scale, so the filter's covariance
+along them never falls below the start's (the scale's prior). With Jacobians at the current estimate the linearised filter observes a yaw it cannot
 see (Huang, Mourikis and Roumeliotis 2008): the test below fails that way."""
 
 from __future__ import annotations
@@ -70,3 +70,20 @@ def test_jacobians_at_the_current_estimate_gain_spurious_yaw_information(run):
     ekf = _drive(run, dataclasses.replace(EkfConfig(), first_estimate_jacobians=False))
     info = _unobservable_info(ekf)
     assert np.linalg.eigvalsh(info).max() > 1.05
+
+
+def _scale_sigma_without_wheels(run, fej: bool) -> float:
+    """The range scale's sigma after the drive, the wheels' distance made worthless: only the
+    landmarks could inform the scale, and they cannot (scaling map and path leaves them as they are)."""
+    from reloc.calibration import CalibrationConfig
+
+    motion = dataclasses.replace(EkfConfig().motion, fwd_per_sqrtm=3.0, fwd_per_speed=3.0)
+    cfg = dataclasses.replace(EkfConfig(), motion=motion, first_estimate_jacobians=fej, slip_sigma=0.0,
+                              calibration=CalibrationConfig(scale_sigma=0.01))
+    ekf = _drive(run, cfg)
+    return float(ekf.calibration()["scale_sigma"])
+
+
+def test_landmarks_alone_do_not_observe_the_range_scale(run):
+    assert _scale_sigma_without_wheels(run, True) >= 0.01 * 0.98
+    assert _scale_sigma_without_wheels(run, False) < 0.01 * 0.9  # the moving estimate "learns" it

@@ -16,7 +16,7 @@ from ekf.slam import EkfSlam
 from reloc.backend import PoseEstimate
 
 SLIP = 0.06  # the rover drives 94 % of what it is commanded
-SIGMA = 0.05  # the state's prior (off by default, see EkfConfig.slip_sigma)
+SIGMA = 0.05  # the state's prior (EkfConfig.slip_sigma)
 BLIND_FROM = 50 * 30  # step index (30 Hz): landmarks for 50 s, then 40 s blind
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
 
