@@ -37,11 +37,44 @@ class TiledRun:
     route: list
 
 
+def _scene_and_stream(sim: TiledSimulation):
+    """The bag's scene (the mast camera's mounting, odometry's start in world) and the
+    measurement stream: the stream is read up to its first ground-truth pose for the start (a
+    few messages at t = 0), which are then given back first."""
+    from itertools import chain
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from reloc.measurements import GroundTruthPose
+    from sim.bag_scene import BagScene
+    from sim.sensors.stereo import StereoCamera
+
+    it = iter(sim.measurements())
+    head = []
+    T0 = None
+    for m in it:
+        head.append(m)
+        if isinstance(m, GroundTruthPose):
+            T0 = np.eye(4)
+            T0[:3, :3] = Rotation.from_quat(m.quat_xyzw).as_matrix()
+            T0[:3, 3] = m.position_m
+            break
+    scene = BagScene(T_base_cam=StereoCamera.from_config(sim.config.sensors.stereo).T_base_cam, T_world_odom=T0)
+    return scene, chain(head, it)
+
+
 def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
-                    progress: Callable[[str, float, float], None] | None = None) -> TiledRun:
+                    progress: Callable[[str, float, float], None] | None = None,
+                    style=None, topics=None) -> TiledRun:
     """Simulate the kilometre-preset run ``cfg`` and write its directory ``out`` (see module doc).
     ``progress(stage, done, total)`` is called as it goes (stage "drive" in metres, "catalogs"
-    and "image" in tiles)."""
+    and "image" in tiles). ``style``/``topics``: the bag's :class:`sim.bag_scene.BagStyle` and
+    names (default fgslam's: no /tf, stream-second stamps). With ``style.tf`` the bag holds
+    ``/tf_static`` (world -> odom at the start, base_link -> the mast camera) and ``/tf`` (world
+    -> base_link with every ground-truth pose); the orbital catalog is made after the drive, so
+    it is named in the bag's metadata (``fgslam.catalog``: ``catalog.csv``) rather than latched
+    as markers."""
     import yaml
 
     out = Path(out)
@@ -52,7 +85,9 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
     t0, c0 = time.perf_counter(), cpu_s()
     sim = TiledSimulation(cfg, progress=None if progress is None else
                           (lambda d: progress("drive", d, sim.config.traverse.distance_m)))
-    bag = write_bag(out / "bag", sim.measurements(), overwrite=overwrite)
+    scene, stream = _scene_and_stream(sim)
+    bag = write_bag(out / "bag", stream, overwrite=overwrite, style=style, topics=topics, scene=scene,
+                    custom_data={"fgslam.catalog": "catalog.csv"})
     t_drive = time.perf_counter() - t0
     rss_drive = peak_rss_mb()
     products = write_orbital_products(sim.world, sim.driver.planner.history_xy, sim.config, out, progress)

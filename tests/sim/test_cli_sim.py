@@ -118,3 +118,32 @@ def test_a_kilometre_run_sizes_the_matcher_to_its_catalog_and_its_world_yaml_is_
     world = yaml.safe_load((out / "world.yaml").read_text())
     assert world["relocalizer"] == {"matcher": {"sigma_m": 0.5}}
     assert config_to_dict(load_sim_config(None, None, None, out / "world.yaml")) == world["config"]
+
+
+def test_a_kilometre_bag_in_the_robot_style_carries_tf_and_real_stamps_and_runs(tmp_path):
+    """--bag-style robot on a kilometre world: the robot's topic names, 2026 stamps, /tf_static
+    (world -> odom at the start, base_link -> the mast camera), /tf with every ground-truth pose,
+    the catalog named in the metadata; `fgslam run` takes it with the robot's topic map."""
+    from rosbags.highlevel import AnyReader
+
+    from sim.bag_scene import ROBOT_EPOCH_NS, ROBOT_TOPICS
+
+    out = tmp_path / "km"
+    assert main(["sim", "--world", "rocky-1km", "--seed", "2", "--distance-m", "4", "--bag-style", "robot",
+                 "--out", str(out)]) == 0
+    meta = yaml.safe_load((out / "bag" / "metadata.yaml").read_text())
+    assert meta["rosbag2_bagfile_information"]["custom_data"]["fgslam.catalog"] == "catalog.csv"
+    with AnyReader([out / "bag"]) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        assert {ROBOT_TOPICS.imu, ROBOT_TOPICS.wheel_odom, "/tf", "/tf_static"} <= set(topics)
+        assert reader.start_time >= ROBOT_EPOCH_NS
+        static = [reader.deserialize(raw, c.msgtype)
+                  for c, _, raw in reader.messages(connections=[topics["/tf_static"]])]
+        pairs = {(t.header.frame_id, t.child_frame_id) for m in static for t in m.transforms}
+        assert ("world", "odom") in pairs and any(p == "base_link" for p, _ in pairs)
+        n_tf = sum(1 for _ in reader.messages(connections=[topics["/tf"]]))
+        n_truth = sum(1 for _ in reader.messages(connections=[topics[ROBOT_TOPICS.ground_truth]]))
+        assert n_tf == n_truth > 0
+    assert main(["run", str(out), "--backend", "ekf", "--no-reloc", "--topic", f"imu={ROBOT_TOPICS.imu}",
+                 "--topic", f"wheel_odom={ROBOT_TOPICS.wheel_odom}", "--out", str(tmp_path / "run")]) == 0
+    assert (tmp_path / "run" / "ekf.tum").is_file()

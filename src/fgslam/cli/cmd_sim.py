@@ -53,7 +53,7 @@ def sim_cmd(
         False, "--write-images", help="With --detections image: write the rendered stereo pairs, their CameraInfo and the camera mounting (/tf_static) into the bag."
     ),
     bag_style: str = typer.Option(
-        "fgslam", "--bag-style", help="fgslam (fgslam's topics, stamps from 0) | robot (/imu/data, /odom, an unstamped Twist on /cmd_vel, /stereo/*/image_raw/compressed, stamps from 2026-01-01; with --write-images no /rocks: the images are the rocks' input). Both write /tf, /tf_static and the catalog as markers."
+        "fgslam", "--bag-style", help="fgslam (fgslam's topics, stamps from 0) | robot (/imu/data, /odom, an unstamped Twist on /cmd_vel, /stereo/*/image_raw/compressed, stamps from 2026-01-01; with --write-images no /rocks: the images are the rocks' input). Both write /tf, /tf_static and the catalog as markers (kilometre worlds: the catalog, made after the drive, is named in the bag's metadata)."
     ),
     epoch: str | None = typer.Option(
         None, "--epoch", help="First stamp: seconds since 1970 or an ISO date (2026-01-01T08:00:00Z) [default: the style's]."
@@ -83,9 +83,7 @@ def sim_cmd(
     if is_tiled(cfg.world):
         if detections != "statistical":
             raise typer.BadParameter("--detections image is for the yards; the kilometre worlds use the sensor models")
-        if bag_style != "fgslam" or epoch is not None:
-            raise typer.BadParameter("--bag-style and --epoch are for the yards; the kilometre worlds stream fgslam's bag")
-        _sim_tiled(cfg, out, overwrite, console, force)
+        _sim_tiled(cfg, out, overwrite, console, force, style, topics)
         return
     with sim_output_dir(out, overwrite, force) as od, \
             Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
@@ -143,9 +141,10 @@ def _print_table(title: str, rows: list[tuple[str, str]]) -> None:
     Console().print(table)
 
 
-def _sim_tiled(cfg, out: Path, overwrite: bool, console, force: bool = False) -> None:
+def _sim_tiled(cfg, out: Path, overwrite: bool, console, force: bool = False, style=None, topics=None) -> None:
     """A kilometre-preset run: streamed into ``out``'s staging directory with a progress bar,
-    committed whole (:mod:`fgslam.io.outdir`), then a summary table."""
+    committed whole (:mod:`fgslam.io.outdir`), then a summary table. ``style``/``topics``: the
+    bag's (``--bag-style``, ``--epoch``)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from fgslam.io.sim_dir import sim_output_dir
@@ -161,7 +160,7 @@ def _sim_tiled(cfg, out: Path, overwrite: bool, console, force: bool = False) ->
                 tasks[stage] = progress.add_task(label.get(stage, stage), total=total)
             progress.update(tasks[stage], completed=done, total=total)
 
-        run = simulate_to_bag(cfg, od.staging, overwrite=False, progress=report)
+        run = simulate_to_bag(cfg, od.staging, overwrite=False, progress=report, style=style, topics=topics)
         od.commit()
     s = run.stats
     rows = [
