@@ -16,13 +16,15 @@ from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix
 
 
-def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig) -> np.ndarray:
-    """Indices of the landmarks used for matching: n_obs >= min_obs within ``max_radius_m`` of the
-    rover (``sparse_radius_m`` where fewer than ``sparse_below`` are that near), at most
-    ``max_landmarks`` of them, the largest (or the nearest, ``cfg.select``) first."""
+def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig,
+                     min_size_m: float = 0.0) -> np.ndarray:
+    """Indices of the landmarks used for matching: n_obs >= min_obs and size >= ``min_size_m``
+    within ``max_radius_m`` of the rover (``sparse_radius_m`` where fewer than ``sparse_below``
+    are that near), at most ``max_landmarks`` of them, the largest (or the nearest,
+    ``cfg.select``) first."""
     if len(lmap) == 0:
         return np.zeros(0, dtype=int)
-    ok = np.flatnonzero(lmap.n_obs >= cfg.min_obs)
+    ok = np.flatnonzero((lmap.n_obs >= cfg.min_obs) & (lmap.size_m >= min_size_m))
     d = np.linalg.norm(lmap.xyz_world_m[ok, :2] - np.asarray(xy_rover)[:2], axis=1)
     radius = cfg.max_radius_m
     if np.count_nonzero(d <= radius) < cfg.sparse_below:  # sparse ground: a wider map

@@ -109,6 +109,10 @@ class Relocalizer:
         self.matcher = matcher
         mc = getattr(matcher, "config", None)  # a given matcher may not have a MatcherConfig
         self._fit_floor_sigma_m = float(getattr(mc, "fit_floor_sigma_m", 0.0))
+        sizes = np.asarray(catalog.size_m, dtype=float)
+        sizes = sizes[np.isfinite(sizes) & (sizes > 0)]
+        # the local map leaves out what the catalog cannot hold (RelocalizerConfig.min_size_fraction)
+        self.min_size_m = float(self.config.min_size_fraction * np.quantile(sizes, 0.01)) if sizes.size else 0.0
         self._fix_times: list[float] = []
         self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
         self._fresh = StaleMapCheck(self.config.min_new_observations)
@@ -160,7 +164,7 @@ class Relocalizer:
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
         if self.window is not None:  # with the landmarks the back-end dropped on the recent path
             lmap = self.window.update(lmap, est.position_m)
-        idx = select_local_map(lmap, est.position_m, cfg)
+        idx = select_local_map(lmap, est.position_m, cfg, self.min_size_m)
         if idx.size < cfg.min_landmarks:
             return FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
         local_xy = lmap.xyz_world_m[idx, :2]
