@@ -88,6 +88,22 @@ def test_select_local_map_keeps_seen_landmarks_near_the_rover():
     assert list(idx) == [0, 1, 2]
 
 
+def test_the_local_map_leaves_out_what_the_catalog_cannot_hold(stream):
+    """Landmarks smaller than min_size_fraction of the catalog's 1st-percentile size are not
+    matched; the bound follows the catalog the relocalizer was given."""
+    xyz = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], float)
+    lm = LandmarkMap(np.arange(4), xyz, np.tile(np.eye(3), (4, 1, 1)), np.array([0.2, 0.6, 1.0, 2.0]),
+                     np.full(4, 5), "rocks")
+    cfg = RelocalizerConfig(sparse_below=0)
+    assert list(select_local_map(lm, np.zeros(2), cfg, min_size_m=0.5)) == [1, 2, 3]
+    assert list(select_local_map(lm, np.zeros(2), cfg)) == [0, 1, 2, 3]
+    cat = stream.catalog
+    reloc = Relocalizer(cat, cfg, matcher=NearestNeighbourMatcher(cat.xy_m))
+    assert reloc.min_size_m == pytest.approx(0.7 * np.quantile(cat.size_m[cat.size_m > 0], 0.01))
+    off = Relocalizer(cat, RelocalizerConfig(min_size_fraction=0.0), matcher=NearestNeighbourMatcher(cat.xy_m))
+    assert off.min_size_m == 0.0
+
+
 def test_online_relocalization_bounds_the_error_and_fixes_arrive_late(stream):
     gt = truth_of(stream)
     cfg = RelocalizerConfig(period_s=4.0, delay_s=1.5)
