@@ -258,7 +258,7 @@ class EkfSlam(Backend):
         p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin, s.yaw_bias, s.slip)
         P = s.P
         Ppp = F @ P[:POSE_DIM, :POSE_DIM] @ F.T + Q
-        if s.n_landmarks:
+        if P.shape[0] > POSE_DIM:  # landmarks, or the calibration, yaw-rate bias and slip states
             # only the pose rows of the cross terms change: O(n)
             P[:3, POSE_DIM:] += F[:3, 3:] @ P[3:6, POSE_DIM:]
             P[POSE_DIM:, :3] = P[:3, POSE_DIM:].T

@@ -186,6 +186,7 @@ class FilterState:
         P = self.P
         P[th, :] -= dt * P[b, :]
         P[:, th] -= dt * P[:, b]
+        P[:, th] = P[th, :]  # exactly symmetric (the two passes round differently)
         P[b, b] += walk_var
 
     def slip_step(self, d_world: np.ndarray, walk_var: float) -> None:
@@ -196,6 +197,8 @@ class FilterState:
         P = self.P
         P[:3, :] -= np.outer(u, P[g, :])
         P[:, :3] -= np.outer(P[:, g], u)
+        P[:3, :3] = 0.5 * (P[:3, :3] + P[:3, :3].T)  # exactly symmetric (the two passes round differently)
+        P[3:, :3] = P[:3, 3:].T
         P[g, g] += walk_var
 
     def landmark_cols(self, rows: np.ndarray) -> np.ndarray:
