@@ -134,16 +134,14 @@ class RockUpdate:
             zhat = zhat_all[cand]
         H_pose, H_l = point_jacobians(s.R_world_base, s.p_world, s.l_world[cand])
         if s.first_estimates:
-            H_pose[:, :, 5] = yaw_column(s.R_world_base, *s.jacobian_points(cand))
+            p_lin, l_lin = s.jacobian_points(cand)
+            H_pose[:, :, 5] = yaw_column(s.R_world_base, p_lin, l_lin)
         if s.calibrated:
             # at the first estimates too: the range scale, like the world's yaw, is a direction
             # the landmarks alone cannot observe (scaling the map and the path about any point
             # with 1/s leaves every measurement as it is), and Jacobians at the moving estimate
             # made the filter "learn" a scale 20 sigma off its prior with no wheels at all
-            q_cal = zhat
-            if s.first_estimates and cand.size:
-                p_l, l_l = s.jacobian_points(cand)
-                q_cal = (l_l - p_l) @ s.R_world_base
+            q_cal = (l_lin - p_lin) @ s.R_world_base if s.first_estimates else zhat
             H_pose = np.concatenate([H_pose, calibration_jacobians(s, q_cal)[0]], axis=2)
         H_pose = s.pad_head(H_pose)
         S_hat = self._predicted_cov(s, cand, H_pose, H_l)

@@ -58,7 +58,7 @@ class FilterState:
     t_last_checkpoint: float
     n_steps_since_orthonormalise: int = 0
     fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
-    head: int = POSE_DIM  # states before the landmarks: the pose, the calibration and the yaw-rate bias when on
+    head: int = POSE_DIM  # states before the landmarks: the pose, then the calibration, yaw-rate bias and slip when on
     n_calib: int = 0  # CALIB_DIM when the calibration is estimated, else 0
     bias_col: int = -1  # column of the yaw-rate bias in P, -1 when not estimated
     yaw_bias: float = 0.0  # rad/s: IMU heading drift about world z, R_imu ~ Exp(b t e_z) R_true
@@ -172,7 +172,7 @@ class FilterState:
 
     def pad_head(self, J: np.ndarray) -> np.ndarray:
         """Jacobians (..., w) over the first ``w`` head states, zero-padded to (..., head): the
-        states that do not enter a measurement (the yaw-rate bias) get zero columns."""
+        states that do not enter a measurement (the yaw-rate bias, the slip) get zero columns."""
         if J.shape[-1] == self.head:
             return J
         out = np.zeros(J.shape[:-1] + (self.head,))

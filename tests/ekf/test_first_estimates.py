@@ -42,7 +42,7 @@ def _unobservable_info(ekf: EkfSlam) -> np.ndarray:
     the whole world about z, each direction scaled to its start sigma (1 at the start)."""
     s = ekf._s
     n = s.P.shape[0]
-    p, l = s.jacobian_points() if s.first_estimates else (s.p_world, s.l_world)
+    p, l = s.jacobian_points()  # the first estimates, or the current estimate without them
     N = np.zeros((n, 4))
     for i in range(3):  # translation: pose and every landmark move together
         N[i, i] = SIGMA_P0

@@ -48,6 +48,10 @@ def test_overrides_find_their_config_and_bad_keys_are_named():
                           "relocalizer.latency=measured"])
     assert ov == {"compare.relocalizer.period_s": 5, "sim.traverse.distance_m": 20,
                   "sim.sensors.imu.rate_hz": 30, "compare.relocalizer.latency": "measured"}
+    # YAML 1.1 reads an exponent without a dot as a string; a number is meant
+    assert parse_overrides(["sim.sensors.imu.gyro_bias_walk_radps_rsqrt_s=4e-9"]) == {
+        "sim.sensors.imu.gyro_bias_walk_radps_rsqrt_s": 4e-9}
+    assert parse_overrides(["relocalizer.latency=measured"]) == {"compare.relocalizer.latency": "measured"}
     with pytest.raises(CampaignError, match="'relocaliser'"):
         parse_overrides(["relocaliser.period_s=5"])
     with pytest.raises(CampaignError, match="--seeds"):

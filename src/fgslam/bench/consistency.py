@@ -23,24 +23,21 @@ import numpy as np
 
 
 def _set(over: dict, assignment: str) -> None:
-    """``a.b=value`` (value as YAML) into the nested overrides ``over``."""
-    import yaml
+    """``a.b=value`` (value as YAML, :func:`fgslam.campaign.spec.parse_value`) into the nested
+    overrides ``over``."""
+    from fgslam.campaign.spec import CampaignError, parse_value, split_assignment
 
-    key, sep, text = assignment.partition("=")
-    if not sep or not key:
-        raise SystemExit(f"--set {assignment!r}: expected KEY=VALUE (KEY dotted, VALUE as YAML)")
+    try:
+        key, text = split_assignment(assignment)
+        value = parse_value(text)
+    except CampaignError as exc:
+        raise SystemExit(f"--set {assignment!r}: expected KEY=VALUE (KEY dotted, VALUE as YAML): {exc}") from None
     *path, last = key.split(".")
     node = over
     for k in path:
         node = node.setdefault(k, {})
         if not isinstance(node, dict):
             raise SystemExit(f"--set {assignment!r}: {k} is not a block")
-    value = yaml.safe_load(text)
-    if isinstance(value, str):  # YAML 1.1 reads 4e-9 as a string
-        try:
-            value = float(value)
-        except ValueError:
-            pass
     node[last] = value
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 import logging
 from pathlib import Path
 
@@ -56,9 +57,7 @@ def replay(directory: Path, config=None) -> dict:
     slipping = np.array([c.slipping for c in checks], dtype=bool)
     true_slip = 1.0 - true_m / np.maximum(wheel, 1e-9)
     z = np.abs(visual - true_m) / np.maximum(sigma_m, 1e-12)
-    kinds: dict[str, int] = {}
-    for c in checks:
-        kinds[c.kind] = kinds.get(c.kind, 0) + 1
+    kinds = dict(Counter(c.kind for c in checks))
     cfg = mon.cfg
     return {
         "directory": str(directory), **mon.stats(), "checks_by_kind": kinds,

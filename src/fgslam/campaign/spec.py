@@ -65,9 +65,15 @@ def parse_value(text: str):
     import yaml
 
     try:
-        return yaml.safe_load(text)
+        value = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise CampaignError(f"override value {text!r} is not valid YAML: {exc}") from exc
+    if isinstance(value, str) and not value.strip().isalpha():  # YAML 1.1 reads 4e-9 (no dot) as a string
+        try:
+            return float(value)
+        except ValueError:
+            pass
+    return value
 
 
 def split_assignment(text: str) -> tuple[str, str]:

@@ -89,6 +89,7 @@ class Isam2Smoother(LateFixes, Backend):
         self._buf_values = gtsam.Values()
         self._solver_touched = False
         self._growth_kf, self._growth = -1, {}  # cov_growth cache: keyframe index -> (6, 6)
+        self._growth_t = np.zeros(0)  # the keyframe times the cache was made with
 
         k = self.kfs.add(initial.t)
         graph = gtsam.NonlinearFactorGraph()
@@ -175,9 +176,9 @@ class Isam2Smoother(LateFixes, Backend):
         (relative to its observing poses) leaves out: after a blackout of the camera it is the
         drift while blind. Cached per keyframe."""
         k_now = len(self.kfs) - 1
-        if self._growth_kf != k_now:
-            self._growth_kf, self._growth = k_now, {}
-        idx = np.clip(np.searchsorted(np.asarray(self.kfs.t), t_last, side="right") - 1, 0, k_now)
+        if self._growth_kf != k_now:  # a new keyframe: the keyframe times once, the growths afresh
+            self._growth_kf, self._growth, self._growth_t = k_now, {}, np.asarray(self.kfs.t)
+        idx = np.clip(np.searchsorted(self._growth_t, t_last, side="right") - 1, 0, k_now)
         out = np.zeros((len(idx), 6, 6))
         C_now = self.kfs.online_cov[k_now]
         for i in np.unique(idx):
