@@ -61,6 +61,19 @@ class OdometryNoiseConfig:
     floor_sigma_m: Positive = 1e-4  # per step
     floor_sigma_rad: Positive = 1e-5  # per step
     gravity_sigma_rad: Positive = 0.01  # roll/pitch from the IMU's gravity reference
+    # the wheels' slip as a variable g per keyframe (the odometry's translation is (1 - g) times the
+    # commanded one): a bias over hundreds of metres (a wheel-soil property, varying with the
+    # terrain) that the white terms above cannot represent, and that would otherwise pull the
+    # stereo scale and bias the distance driven where landmarks are sparse. Its prior sigma at the
+    # start and its random walk per sqrt(s) between keyframes, as the EKF's slip state
+    # (ekf.config.EkfConfig.slip_sigma); 0: no variable
+    slip_sigma: NonNegative = 0.0
+    slip_walk_rsqrt_s: NonNegative = 5.0e-4
+    # the IMU heading's drift rate about world z as a variable per keyframe (rad/s; its prior sigma
+    # at the start and its random walk per sqrt(s)), taken out of the odometry's rotation as the
+    # EKF's yaw-rate bias state (ekf.config.EkfConfig.yaw_rate_bias_sigma_radps); 0: no variable
+    yaw_rate_bias_sigma_radps: NonNegative = 0.0
+    yaw_rate_bias_walk_radps_rsqrt_s: NonNegative = 2.0e-7
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ class LateFixes:
             return FixOutcome(fix, False, f"{WINDOW_REASON} the smoother window: t_meas {fix.t_meas:.1f} s is older than "
                               f"the {self.config.fixed_lag_s:.0f} s window less its {cfg.window_margin_s:.0f} s margin")
         T_rel, C_rel = seg.at(fix.t_meas)
+        T_rel = self._motion_since_kf(seg, T_rel, fix.t_meas)
         T_kf = self.solver.pose(X(k))
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
         factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor)

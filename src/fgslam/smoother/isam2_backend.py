@@ -17,7 +17,7 @@ import time
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import C, X
+from gtsam.symbol_shorthand import B, C, G, X
 
 from fgslam.errors import SmootherError
 from fgslam.smoother.config import SmootherConfig
@@ -27,12 +27,20 @@ from fgslam.smoother.fixes import FixRecord
 from fgslam.smoother.keyframes import KeyframeStore, keyframe_due
 from fgslam.smoother.kinds import (
     POSE_SYMBOL,
+    SLIP_SYMBOL,
+    YAW_BIAS_SYMBOL,
     KeyframeFrame,
     SmootherKinds,
     resolved_smoother_config,
     symbol_of,
 )
-from fgslam.smoother.odometry_factors import OdometryAccumulator, between_factor, gravity_factor
+from fgslam.smoother.odometry_factors import (
+    OdometryAccumulator,
+    corrected_motion,
+    gravity_factor,
+    odometry_factor,
+    random_walk_factor,
+)
 from fgslam.smoother.solver import Solver, SolverUpdateError
 from reloc.backend import (
     Backend,
@@ -104,7 +112,17 @@ class Isam2Smoother(LateFixes, Backend):
             sig = np.maximum(cal.prior_sigmas(), 1e-6)  # (a sigma of 0: held at 0 by a stiff prior)
             graph.add(gtsam.PriorFactorVector(C(0), np.zeros(4), gtsam.noiseModel.Diagonal.Sigmas(sig)))
             values.insert(C(0), np.zeros(4))
-        self.solver.update(graph, values, {X(k): stamp0})
+        stamps = {X(k): stamp0}
+        odo = self.config.odometry
+        self.slip_on = odo.slip_sigma > 0  # G(i): the wheels' slip from keyframe i on
+        self.bias_on = odo.yaw_rate_bias_sigma_radps > 0  # B(i): the IMU's yaw-rate bias from keyframe i on
+        self._slip = self._bias = 0.0  # their latest estimates
+        for on, key, sigma in ((self.slip_on, G(k), odo.slip_sigma), (self.bias_on, B(k), odo.yaw_rate_bias_sigma_radps)):
+            if on:
+                graph.add(gtsam.PriorFactorDouble(key, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, sigma)))
+                values.insert(key, 0.0)
+                stamps[key] = stamp0
+        self.solver.update(graph, values, stamps)
         self.kinds = SmootherKinds(self.config, C(0) if self.calibrated else None)
         self.acc = OdometryAccumulator(initial.t)
         self.segments: dict[int, OdometryAccumulator] = {k: self.acc}
@@ -127,7 +145,7 @@ class Isam2Smoother(LateFixes, Backend):
     def observe(self, obs) -> LandmarkUpdateReport:
         """One frame of a registered landmark kind: its layer associates it and buffers factors on
         the current keyframe for the next update."""
-        frame = KeyframeFrame(len(self.kfs) - 1, self.T_kf, self.acc.T_kf_now, self.acc.cov,
+        frame = KeyframeFrame(len(self.kfs) - 1, self.T_kf, self._motion_since_kf(), self.acc.cov,
                               self._buf_graph, self._buf_values, self._cov_growth)
         return self.kinds.for_obs(obs).observe(obs, frame)
 
@@ -165,7 +183,7 @@ class Isam2Smoother(LateFixes, Backend):
 
     def estimate(self) -> PoseEstimate:
         """Latest pose: keyframe estimate composed with the odometry since, covariance propagated."""
-        T = self.T_kf @ self.acc.T_kf_now
+        T = self.T_kf @ self._motion_since_kf()
         return PoseEstimate(self.acc.t_now, T, cov_gtsam_to_world(T[:3, :3], self._predicted_cov(self.acc)))
 
     def _cov_growth(self, t_last: np.ndarray) -> np.ndarray:
@@ -189,6 +207,18 @@ class Isam2Smoother(LateFixes, Backend):
                 G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], _psd(C_now - self.kfs.online_cov[i]))
             out[idx == i] = G
         return out
+
+    def _motion_since_kf(self, acc: OdometryAccumulator | None = None, T_rel: np.ndarray | None = None,
+                         t: float | None = None) -> np.ndarray:
+        """(4, 4) motion since the keyframe of ``acc`` (default: the newest) to its end (or ``T_rel``
+        at ``t``), corrected by the latest slip and yaw-rate bias estimates when they are variables."""
+        acc = acc or self.acc
+        T = acc.T_kf_now if T_rel is None else T_rel
+        if not (self.slip_on or self.bias_on):
+            return T
+        dt = (acc.t_now if t is None else t) - acc.t_kf
+        k = self.kfs.before(acc.t_kf + 1e-9)
+        return corrected_motion(T, self._slip, self._bias * dt, self.kfs.online_T[k][:3, :3])
 
     def _predicted_cov(self, acc: OdometryAccumulator) -> np.ndarray:
         """The newest keyframe's marginal moved through the odometry ``acc`` since it (GTSAM tangent)."""
@@ -257,9 +287,19 @@ class Isam2Smoother(LateFixes, Backend):
                 # fixes whose keyframe had left (or was about to leave) the fixed-lag window
                 "n_fixes_older_than_window": self.fix_reject_reasons.get(WINDOW_REASON, 0),
                 "fixed_lag_s": self.config.fixed_lag_s,
+                **({"slip": self._scalar_report(G, self._slip)} if self.slip_on else {}),
+                **({"yaw_rate_bias_deg_per_h": self._scalar_report(B, self._bias, np.degrees(3600.0))}
+                   if self.bias_on else {}),
                 **({"calibration": self.calibration()} if self.calibrated else {}),
             },
         )
+
+    def _scalar_report(self, symbol, estimate: float, unit: float = 1.0) -> dict:
+        """The newest keyframe's estimate of a scalar variable (slip, yaw-rate bias) and its
+        marginal sigma, times ``unit``."""
+        key = symbol(len(self.kfs) - 1)
+        sigma = float(np.sqrt(self.solver.marginal_cov(key)[0, 0])) if self.solver.alive(key) else float("nan")
+        return {"estimate": round(estimate * unit, 5), "sigma": round(sigma * unit, 5)}
 
     # ------------------------------------------------------------------ internals
     def _timed_update(self, graph, values, stamps=None, remove=None, keep_latest_root=False) -> list[int]:
@@ -277,13 +317,23 @@ class Isam2Smoother(LateFixes, Backend):
         k = self.kfs.add(acc.t_now)
         t = acc.t_now
         odo = gtsam.NonlinearFactorGraph()
-        odo.add(between_factor(X(k_prev), X(k), acc.T_kf_now, acc.cov))
-        if acc.R_ref_base is not None:
-            odo.add(gravity_factor(X(k), acc.R_ref_base, self.config.odometry.gravity_sigma_rad))
         vals = gtsam.Values()
-        vals.insert(X(k), gtsam.Pose3(self.T_kf @ acc.T_kf_now))
         ts = self._stamp(t)
         stamps = {X(k): ts}
+        # the slip and yaw-rate bias from the previous keyframe on correct its odometry; each
+        # walks on to the new keyframe
+        dt, cfg = t - self.kfs.t[k_prev], self.config.odometry
+        odo.add(odometry_factor(X(k_prev), X(k), acc.T_kf_now, acc.cov, dt,
+                                G(k_prev) if self.slip_on else None, B(k_prev) if self.bias_on else None))
+        for on, sym, est, walk in ((self.slip_on, G, self._slip, cfg.slip_walk_rsqrt_s),
+                                   (self.bias_on, B, self._bias, cfg.yaw_rate_bias_walk_radps_rsqrt_s)):
+            if on:
+                odo.add(random_walk_factor(sym(k_prev), sym(k), dt, walk))
+                vals.insert(sym(k), est)
+                stamps[sym(k)] = ts
+        if acc.R_ref_base is not None:
+            odo.add(gravity_factor(X(k), acc.R_ref_base, self.config.odometry.gravity_sigma_rad))
+        vals.insert(X(k), gtsam.Pose3(self.T_kf @ self._motion_since_kf(acc)))
         graph = gtsam.NonlinearFactorGraph()
         graph.push_back(odo)
         graph.push_back(self._buf_graph)
@@ -333,7 +383,9 @@ class Isam2Smoother(LateFixes, Backend):
                 continue
             leaving = True
             i = int(gtsam.Symbol(key).index())
-            if symbol_of(key) == POSE_SYMBOL:
+            if symbol_of(key) in (SLIP_SYMBOL, YAW_BIAS_SYMBOL):
+                pass  # they leave with their keyframe
+            elif symbol_of(key) == POSE_SYMBOL:
                 T = self.solver.pose(key)
                 if self.config.frozen_marginals:
                     C = cov_gtsam_to_world(T[:3, :3], self.solver.marginal_cov(key))
@@ -363,6 +415,10 @@ class Isam2Smoother(LateFixes, Backend):
         k = len(self.kfs) - 1
         self.T_kf = self.solver.pose(X(k))
         self.cov_kf = self.solver.marginal_cov(X(k)) if cov is None else cov
+        if self.slip_on:
+            self._slip = float(self.solver.estimate(G(k))[0])
+        if self.bias_on:
+            self._bias = float(self.solver.estimate(B(k))[0])
         if len(self.kfs.online_T) <= k:
             self.kfs.record_online(self.T_kf, cov_gtsam_to_world(self.T_kf[:3, :3], self.cov_kf))
         for layer in self.kinds.used():

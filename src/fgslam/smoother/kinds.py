@@ -2,7 +2,8 @@
 smoother layer provides, and the dispatch.
 
 Keys are ``gtsam.Symbol(c, i)``: ``x`` keyframe poses (Pose3), ``c`` the stereo calibration
-(Vector4), and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
+(Vector4), ``g`` the wheels' slip and ``b`` the IMU's yaw-rate bias from each keyframe on (doubles, when
+estimated), and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
 variable type its layer declares. A kind's smoother layer (``LandmarkKind.smoother``) is a class
 built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibration variable):
 
@@ -35,7 +36,7 @@ from fgslam.errors import SmootherError
 from reloc.kind_layers import KindLayers, config_with_kinds, layer_config
 from reloc.kinds import KindLayerError, LandmarkKind, UnknownKindError, kind_of_symbol
 
-POSE_SYMBOL, CALIB_SYMBOL = "x", "c"
+POSE_SYMBOL, CALIB_SYMBOL, SLIP_SYMBOL, YAW_BIAS_SYMBOL = "x", "c", "g", "b"
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,8 @@ POSE3 = VariableType("Pose3", 6, lambda v, k: v.atPose3(k), lambda s, k: s.calcu
                      lambda x: x.matrix())
 POINT3 = VariableType("Point3", 3, lambda v, k: v.atPoint3(k), lambda s, k: s.calculateEstimatePoint3(k),
                       lambda x: np.asarray(x, dtype=float))
+SCALAR = VariableType("double", 1, lambda v, k: v.atDouble(k), lambda s, k: s.calculateEstimateDouble(k),
+                    lambda x: np.atleast_1d(np.asarray(x, dtype=float)))
 CALIBRATION = VariableType("Vector4", 4, lambda v, k: v.atVector(k), lambda s, k: s.calculateEstimateVector(k),
                            lambda x: np.asarray(x, dtype=float))
 
@@ -74,6 +77,8 @@ def variable_type(symbol: str) -> VariableType:
         return POSE3
     if symbol == CALIB_SYMBOL:
         return CALIBRATION
+    if symbol in (SLIP_SYMBOL, YAW_BIAS_SYMBOL):
+        return SCALAR
     try:
         return kind_of_symbol(symbol).layer("smoother").variable
     except (UnknownKindError, KindLayerError) as exc:

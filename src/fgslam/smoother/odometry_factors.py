@@ -100,3 +100,84 @@ def gravity_factor(key: int, R_ref_base: np.ndarray, sigma_rad: float) -> gtsam.
     b_z = np.asarray(R_ref_base).T @ np.array([0.0, 0.0, 1.0])
     model = gtsam.noiseModel.Isotropic.Sigma(2, sigma_rad)
     return gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(b_z))
+
+
+def slipped_motion(T_kf0_kf1: np.ndarray, g: float) -> np.ndarray:
+    """(4, 4): the accumulated odometry motion with its translation scaled by ``1 - g`` (the share
+    ``g`` of the commanded distance lost to slip; every step's translation scales alike)."""
+    T = np.array(T_kf0_kf1, dtype=float)
+    T[:3, 3] *= 1.0 - g
+    return T
+
+
+def corrected_motion(T_kf0_kf1: np.ndarray, g: float, yaw_drift_rad: float, R_world_kf0: np.ndarray) -> np.ndarray:
+    """(4, 4): the accumulated motion with its translation scaled by ``1 - g`` and the IMU heading's
+    drift over it (``yaw_drift_rad``, about world z) taken out of its rotation,
+    ``Exp(-drift R0^T e_z) dR`` (the EKF's ``R1 = Exp(-b dt e_z) R0 dR``, :mod:`ekf.motion`)."""
+    T = slipped_motion(T_kf0_kf1, g)
+    if yaw_drift_rad:
+        u = np.asarray(R_world_kf0)[2, :]  # world z in the keyframe's body frame
+        T[:3, :3] = gtsam.Rot3.Expmap(-yaw_drift_rad * u).matrix() @ T[:3, :3]
+    return T
+
+
+def odometry_residual(X0: gtsam.Pose3, X1: gtsam.Pose3, g: float, b: float, dt_s: float, T_kf0_kf1: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Residual (6,) ``Log(M^-1 X0^-1 X1)`` of the between-factor (GTSAM's BetweenFactor
+    convention) whose measured motion ``M`` is the odometry corrected by the slip ``g`` and the
+    yaw-rate bias ``b`` (rad/s) over ``dt_s`` (:func:`corrected_motion`), and its Jacobians w.r.t.
+    X0, X1 (6, 6), g (6, 1) and b (6, 1). In M's tangent, ``dM/dg = [0, -R_M^T t]`` (t the
+    unscaled translation) and ``dM/db = [-dt R_M^T u, 0]`` (u = world z in X0's frame; u's own
+    dependence on X0's attitude, a term of order b dt, is left out)."""
+    R0 = X0.rotation().matrix()
+    T = corrected_motion(T_kf0_kf1, g, b * dt_s, R0)
+    M = gtsam.Pose3(T)
+    H0, H1 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    B = X0.between(X1, H0, H1)
+    HM, HB = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+    E = M.between(B, HM, HB)
+    HE = np.zeros((6, 6), order="F")
+    e = gtsam.Pose3.Logmap(E, HE)
+    RmT = T[:3, :3].T
+    dg, db = np.zeros(6), np.zeros(6)
+    dg[3:] = -RmT @ np.asarray(T_kf0_kf1)[:3, 3]
+    db[:3] = -dt_s * RmT @ R0[2, :]
+    HEB, HEM = HE @ HB, HE @ HM
+    return (np.asarray(e, dtype=float).ravel(), HEB @ H0, HEB @ H1, (HEM @ dg)[:, None], (HEM @ db)[:, None])
+
+
+def odometry_factor(k0: int, k1: int, T_kf0_kf1: np.ndarray, cov: np.ndarray, dt_s: float,
+                    slip_key: int | None = None, bias_key: int | None = None) -> gtsam.NonlinearFactor:
+    """Between-factor X(k0) -> X(k1) of the accumulated odometry (4, 4) with covariance (6, 6,
+    [rot, trans]); with a slip variable ``slip_key`` and / or a yaw-rate bias variable
+    ``bias_key`` (doubles) the measured motion is corrected by them (:func:`odometry_residual`, a
+    CustomFactor, one per keyframe), else GTSAM's C++ BetweenFactorPose3."""
+    if slip_key is None and bias_key is None:
+        return between_factor(k0, k1, T_kf0_kf1, cov)
+    T = np.array(T_kf0_kf1, dtype=float)
+    model = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+    keys = [k0, k1] + [k for k in (slip_key, bias_key) if k is not None]
+    i_g = 2 if slip_key is not None else None
+    i_b = (3 if slip_key is not None else 2) if bias_key is not None else None
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        k = this.keys()
+        g = values.atDouble(k[i_g]) if i_g is not None else 0.0
+        b = values.atDouble(k[i_b]) if i_b is not None else 0.0
+        r, A0, A1, Ag, Ab = odometry_residual(values.atPose3(k[0]), values.atPose3(k[1]), g, b, dt_s, T)
+        if H is not None:
+            H[0], H[1] = A0, A1
+            if i_g is not None:
+                H[i_g] = Ag
+            if i_b is not None:
+                H[i_b] = Ab
+        return r
+
+    return gtsam.CustomFactor(model, keys, error)
+
+
+def random_walk_factor(key0: int, key1: int, dt_s: float, walk_rsqrt_s: float) -> gtsam.BetweenFactorDouble:
+    """Random walk of a scalar variable (slip, yaw-rate bias) between two keyframes ``dt_s``
+    apart, ``walk_rsqrt_s`` per sqrt(s) (C++)."""
+    sigma = max(walk_rsqrt_s * np.sqrt(max(dt_s, 0.0)), 1e-9)
+    return gtsam.BetweenFactorDouble(key0, key1, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, sigma))

@@ -21,7 +21,14 @@ import numpy as np
 from fgslam.errors import SmootherError
 from fgslam.smoother.config import Factorization, SmootherConfig
 from fgslam.smoother.covariance import tree_marginals
-from fgslam.smoother.kinds import CALIB_SYMBOL, POSE_SYMBOL, symbol_of, variable_type
+from fgslam.smoother.kinds import (
+    CALIB_SYMBOL,
+    POSE_SYMBOL,
+    SLIP_SYMBOL,
+    YAW_BIAS_SYMBOL,
+    symbol_of,
+    variable_type,
+)
 from reloc.kinds import kinds_with
 
 log = logging.getLogger(__name__)
@@ -44,6 +51,8 @@ def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Par
             dim = kind.layer("smoother").variable.dim
             th.insert((kind.symbol, np.full(dim, cfg.relinearize_threshold * cfg.landmark_relinearize_scale)))
         th.insert((CALIB_SYMBOL, np.full(4, cfg.relinearize_threshold)))  # the stereo calibration, if any
+        th.insert((SLIP_SYMBOL, np.full(1, 0.1 * cfg.relinearize_threshold)))  # the slip, if estimated
+        th.insert((YAW_BIAS_SYMBOL, np.full(1, 1e-7)))  # the yaw-rate bias (rad/s), if estimated
         p.setRelinearizeThreshold(th)
     p.relinearizeSkip = cfg.relinearize_skip
     p.setFactorization("QR" if factorization is Factorization.QR else "CHOLESKY")
