@@ -192,9 +192,6 @@ class SmootherConfig:
     # is common to every observation, which the factors take as independent: a rock seen from n
     # keyframes would average it down by n
     calibration_consider_scale: Positive = 1.0
-    # "estimate": every factor on C(0) keeps it at its first estimate (0) as its linearization point
-    # (C(0) itself is never relinearized; its estimate is that point plus iSAM2's delta)
-    calibration_first_estimate: bool = False
     # settings of the other landmark kinds' smoother layers, by kind name (each layer declares its
     # config class; the rock settings are ``landmarks``), see fgslam.smoother.kinds
     kinds: dict = field(default_factory=dict)

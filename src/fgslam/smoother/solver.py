@@ -40,20 +40,17 @@ class SolverUpdateError(SmootherError):
 
 def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Params:
     p = gtsam.ISAM2Params()
-    single = cfg.fixed_lag_s > 0.0 or cfg.landmark_relinearize_scale == 1.0 or cfg.relinearize_threshold == 0.0
-    if single and not cfg.calibration_first_estimate:
+    if cfg.fixed_lag_s > 0.0 or cfg.landmark_relinearize_scale == 1.0 or cfg.relinearize_threshold == 0.0:
         # fixed-lag: landmarks leave the window linearized where they are, so they relinearize
         # like poses (with the scale the fixed-lag ATE rose 25 %, at no speed gain)
         p.setRelinearizeThreshold(cfg.relinearize_threshold)
-    else:  # per variable type: poses X (6,), every kind's landmarks, the calibration C (4,), slip, bias
+    else:  # full mode, per variable type: poses X (6,), every kind's landmarks, the calibration C (4,)
         th = gtsam.ISAM2ThresholdMap()
         th.insert((POSE_SYMBOL, np.full(6, cfg.relinearize_threshold)))
-        lm = 1.0 if single else cfg.landmark_relinearize_scale
         for kind in kinds_with("smoother"):
             dim = kind.layer("smoother").variable.dim
-            th.insert((kind.symbol, np.full(dim, cfg.relinearize_threshold * lm)))
-        # the stereo calibration, if any; held at its first estimate (never relinearized) when asked
-        th.insert((CALIB_SYMBOL, np.full(4, np.inf if cfg.calibration_first_estimate else cfg.relinearize_threshold)))
+            th.insert((kind.symbol, np.full(dim, cfg.relinearize_threshold * cfg.landmark_relinearize_scale)))
+        th.insert((CALIB_SYMBOL, np.full(4, cfg.relinearize_threshold)))  # the stereo calibration, if any
         th.insert((SLIP_SYMBOL, np.full(1, 0.1 * cfg.relinearize_threshold)))  # the slip, if estimated
         th.insert((YAW_BIAS_SYMBOL, np.full(1, 1e-7)))  # the yaw-rate bias (rad/s), if estimated
         p.setRelinearizeThreshold(th)
