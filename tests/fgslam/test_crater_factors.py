@@ -117,20 +117,21 @@ def test_the_ekf_crater_update_is_the_kalman_update_of_numerical_jacobians():
     np.testing.assert_allclose(s.P, I_KH @ P @ I_KH.T + K @ cov1 @ K.T, rtol=1e-6, atol=1e-9)
 
 
-def test_craters_consider_the_estimated_calibration_unless_told_to_share_it():
-    """With the calibration variable C(0), crater factors stay C++ and take its prior into their
-    covariance (J_c Sigma_c J_c^T); ``share_calibration`` puts them on C(0) as the rocks are."""
+def test_craters_share_the_estimated_calibration_or_consider_it():
+    """With the calibration variable C(0), crater factors are on it as the rocks are; with
+    ``share_calibration`` off they stay C++ and take its prior into their covariance
+    (J_c Sigma_c J_c^T)."""
     from fgslam.smoother.factors import calibration_cov
     from reloc.calibration import CalibrationConfig
 
     cal = CalibrationConfig(yaw_sigma_deg=0.15, scale_sigma=0.003)
     ck = gtsam.symbol("c", 0)
     z = np.array([15.0, 3.0, -0.5])
-    layer = CraterLandmarks(SmootherConfig(calibration=cal), kind_named("craters"), ck)
+    layer = CraterLandmarks(SmootherConfig(calibration=cal, kinds={"craters": {"share_calibration": False}}),
+                            kind_named("craters"), ck)
     assert layer.calib_key is None and isinstance(layer._point_factor(0, 0, z, np.eye(3)), gtsam.BearingRangeFactor3D)
     np.testing.assert_allclose(calibration_cov(z, layer._consider_cov)[0],
                                calibration_cov(z, np.diag(cal.prior_sigmas() ** 2))[0])
-    shared = CraterLandmarks(SmootherConfig(calibration=cal, kinds={"craters": {"share_calibration": True}}),
-                             kind_named("craters"), ck)
+    shared = CraterLandmarks(SmootherConfig(calibration=cal), kind_named("craters"), ck)
     f = shared._point_factor(0, 0, z, np.eye(3))
     assert shared._consider_cov is None and isinstance(f, gtsam.CustomFactor) and ck in f.keys()  # noqa: SIM118

@@ -1,9 +1,9 @@
 """The crater kind's smoother layer: rim centres as Point3 variables ``R(j)`` (key symbol ``r``).
 
 A crater rim's centre is a point seen in base_link, so its factor is the rock's C++
-``BearingRangeFactor3D`` (or, with ``share_calibration``, the calibrated point factor when the
-smoother estimates the stereo calibration; by default the calibration's prior is considered in its
-covariance) whose bearing/range covariance is the exact linear image of the rim centre's
+``BearingRangeFactor3D`` (or the calibrated point factor when the smoother estimates the stereo
+calibration and ``share_calibration`` is on, the default; off, the calibration's prior is
+considered in its covariance) whose bearing/range covariance is the exact linear image of the rim centre's
 covariance (:func:`fgslam.smoother.factors.make_point_factor`): a partial rim's long axis stays
 long. Association, candidates, the per-frame budget and fixed-lag retirement are the rock
 layer's (:class:`fgslam.smoother.rocks.RockLandmarks`), run with the crater settings of
@@ -41,10 +41,11 @@ class CraterSmootherConfig:
     budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=10, max_new=3))
     use: bool = True  # False: crater frames are counted and left out (a rocks-only run of the same stream)
     # with the calibration variable C(0) (calibration_mode "estimate"): whether crater factors
-    # share it (calibrated CustomFactors) or take its prior into their covariance (C++ factors,
-    # as "consider"). Measured on sparse-5km, first 400 m, no fixes: shared, the range scale ran
-    # to 1.0156 +- 0.0024 (true 0.9971) and the error to 5.7 m; rocks alone 1.0047, 2.7 m
-    share_calibration: bool = False
+    # share it (calibrated CustomFactors, the same stereo) or take its prior into their covariance
+    # (C++ factors, as "consider"). First 400 m, no fixes: shared, sparse-5km's range scale ran to
+    # 1.012-1.016 (true 0.9971; rocks alone 1.0047); considered, craters claim an exact scale and pin
+    # it at 1.000 +- 0.0003 (rocky-1km, cratered-3km). docs/smoother.md, "Long traverses"
+    share_calibration: bool = True
 
 
 class CraterLandmarks(RockLandmarks):
