@@ -46,7 +46,7 @@ def drift_table(directory: Path, backend: str, duration_s: float, bin_s: float =
     """The back-end over the first ``duration_s`` s of ``directory`` (see module doc): JSON-ready."""
     from fgslam import metrics as M
     from fgslam.backends.registry import make_backend
-    from fgslam.bench.craters import _overrides, _stretch
+    from fgslam.bench.sim_dir import directory_overrides, first_seconds
     from fgslam.inputs import load_sim_dir, truth_of
     from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for, run_span_s
     from fgslam.runner import run_backend
@@ -55,14 +55,14 @@ def drift_table(directory: Path, backend: str, duration_s: float, bin_s: float =
     gt = truth_of(inputs)
     if gt is None or not len(gt):
         raise SystemExit(f"{directory}: no ground truth in the bag")
-    over = dict(_overrides(directory, backend, craters))
+    over = dict(directory_overrides(directory, backend, craters))
     for a in sets:
         _set(over, a)
     over = backend_overrides_for(backend, over, run_span_s(gt, inputs.measurements, duration_s),
                                  LongTraverseConfig())
     be = make_backend(backend, inputs.initial, over)
     t0 = time.perf_counter()
-    res = run_backend(be, _stretch(inputs.measurements, duration_s))
+    res = run_backend(be, first_seconds(inputs.measurements, duration_s))
     wall = time.perf_counter() - t0
     cons, ser = M.consistency(res.online, gt)
     t = ser["t"] - ser["t"][0]

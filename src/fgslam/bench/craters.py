@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fgslam.bench.sim_dir import directory_overrides, first_seconds
 from fgslam.metrics import fix_errors, interpolate_truth
 
 PASSES: dict[str, tuple[bool, tuple[str, ...]]] = {  # name -> (craters mapped, relocalizers)
@@ -78,32 +79,6 @@ class _CountingRelocalizer:
         return att
 
 
-def _overrides(directory: Path, backend: str, craters_used: bool) -> dict:
-    import yaml
-
-    f = directory / "backend.yaml"
-    over = dict((yaml.safe_load(f.read_text()) or {}).get("backend_overrides", {}).get(backend, {}) if f.exists() else {})
-    if not craters_used:
-        kinds = dict(over.get("kinds", {}))
-        kinds["craters"] = {**dict(kinds.get("craters", {})), "use": False}
-        over["kinds"] = kinds
-    return over
-
-
-def _stretch(measurements, duration_s: float | None):
-    """The measurements of the first ``duration_s`` seconds (all of them for None), lazily."""
-    if duration_s is None:
-        yield from measurements
-        return
-    t_end = None
-    for m in measurements:
-        if t_end is None:
-            t_end = m.t + duration_s
-        if m.t > t_end:
-            return
-        yield m
-
-
 def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[[str], None] | None = None) -> dict:
     """Every pass of ``cfg`` on the ``fgslam sim`` directory (see module doc): a JSON-ready dict."""
     from fgslam.backends.registry import make_backend
@@ -130,10 +105,10 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         span = run_span_s(gt, inputs.measurements, cfg.duration_s)
         # the long-traverse defaults as `fgslam run` gets them (fixed-lag iSAM2 beyond 30 min: a
         # 4000 s stretch in full mode ran at 1.4x real time)
-        overrides = backend_overrides_for(cfg.backend, _overrides(directory, cfg.backend, craters_used), span,
+        overrides = backend_overrides_for(cfg.backend, directory_overrides(directory, cfg.backend, craters_used), span,
                                           LongTraverseConfig())
         be = make_backend(cfg.backend, inputs.initial, overrides)
-        res = run_backend(be, _stretch(inputs.measurements, cfg.duration_s),
+        res = run_backend(be, first_seconds(inputs.measurements, cfg.duration_s),
                           OnlineFixes(producers) if producers else NoFixes())
         row: dict = {"ate_rmse_m": ate(res.final, gt).rmse, "wall_s": res.wall_s,
                      "landmarks": {k: len(m) for k, m in res.landmarks.items()}}

@@ -153,7 +153,7 @@ def summarize(records: list[dict], bound: Mapping[str, float]) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     from fgslam.backends.registry import make_backend
-    from fgslam.bench.craters import _stretch
+    from fgslam.bench.sim_dir import first_seconds
     from fgslam.compare import relocalizer_set
     from fgslam.config_file import load_compare_config
     from fgslam.fix_sources import OnlineFixes
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> dict:
         bound[kind] = 10.0 ** mcfg.max_log10_false_alarm
     be = make_backend(args.backend, inputs.initial,
                       backend_overrides_for(args.backend, cfg.backend_overrides.get(args.backend), span, cfg.long_traverse))
-    run_backend(be, _stretch(inputs.measurements, args.duration_s), OnlineFixes(probes), config=runner_cfg)
+    run_backend(be, first_seconds(inputs.measurements, args.duration_s), OnlineFixes(probes), config=runner_cfg)
     records = [rec for p in probes for rec in p.records]
     res = {"directory": str(args.directory), "backend": args.backend, "duration_s": args.duration_s,
            "kinds": summarize(records, bound)}
