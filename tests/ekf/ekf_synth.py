@@ -4,6 +4,7 @@ filter's own process-noise model, so a consistent filter must pass chi-square ch
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,3 +94,22 @@ def truth_pose(run: SynthRun, k: int) -> GroundTruthPose:
     from scipy.spatial.transform import Rotation
 
     return GroundTruthPose(run.t[k], run.truth_p[k], Rotation.from_matrix(run.truth_R[k]).as_quat())
+
+
+def overstate_commands(run: SynthRun, slip: float) -> SynthRun:
+    """``run`` with its commanded speeds overstating the driven distance by the share ``slip``
+    (the rover drives ``1 - slip`` of what it is commanded)."""
+    run.steps = [dataclasses.replace(s, v_mps=s.v_mps / (1.0 - slip)) for s in run.steps]
+    return run
+
+
+def drift_heading(run: SynthRun, bias_radps: float) -> SynthRun:
+    """``run`` with its IMU heading drifting at ``bias_radps`` about world z (a gyro bias)."""
+    t0 = run.t[0]
+
+    def drift(t, R):
+        return exp_so3(np.array([0.0, 0.0, bias_radps * (t - t0)])) @ R
+
+    run.steps = [dataclasses.replace(s, R_ref_base0=drift(s.t0, s.R_ref_base0), R_ref_base1=drift(s.t1, s.R_ref_base1))
+                 for s in run.steps]
+    return run

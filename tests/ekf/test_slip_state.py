@@ -9,7 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from ekf_synth import simulate
+from ekf_synth import overstate_commands, simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
@@ -23,9 +23,7 @@ START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8
 
 @pytest.fixture(scope="module")
 def slipping():
-    run = simulate(4, duration_s=90.0, frame_every=6, n_rocks=250)
-    run.steps = [dataclasses.replace(s, v_mps=s.v_mps / (1.0 - SLIP)) for s in run.steps]
-    return run
+    return overstate_commands(simulate(4, duration_s=90.0, frame_every=6, n_rocks=250), SLIP)
 
 
 def _drive(run, cfg):

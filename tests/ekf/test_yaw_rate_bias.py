@@ -8,12 +8,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-from ekf_synth import simulate
+from ekf_synth import drift_heading, simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
 from reloc.backend import PoseEstimate
-from reloc.geometry import exp_so3, wrap_angle, yaw_of
+from reloc.geometry import wrap_angle, yaw_of
 
 BIAS = 1.5e-3  # rad/s: 5 deg in 60 s, so that one test minute shows it
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
@@ -21,15 +21,7 @@ START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8
 
 @pytest.fixture(scope="module")
 def drifting():
-    run = simulate(3, duration_s=60.0, frame_every=6, n_rocks=250)
-    t0 = run.t[0]
-
-    def drift(t, R):
-        return exp_so3(np.array([0.0, 0.0, BIAS * (t - t0)])) @ R
-
-    run.steps = [dataclasses.replace(s, R_ref_base0=drift(s.t0, s.R_ref_base0), R_ref_base1=drift(s.t1, s.R_ref_base1))
-                 for s in run.steps]
-    return run
+    return drift_heading(simulate(3, duration_s=60.0, frame_every=6, n_rocks=250), BIAS)
 
 
 def _drive(run, cfg):

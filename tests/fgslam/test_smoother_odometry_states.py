@@ -8,8 +8,6 @@ differences."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import gtsam
 import numpy as np
 import pytest
@@ -20,7 +18,7 @@ from fgslam.smoother.config import OdometryNoiseConfig
 from fgslam.smoother.odometry_factors import odometry_residual
 from reloc.backend import PoseEstimate
 from reloc.geometry import exp_so3, log_so3, wrap_angle, yaw_of
-from tests.ekf.ekf_synth import simulate
+from tests.ekf.ekf_synth import drift_heading, overstate_commands, simulate
 
 SLIP = 0.06  # the rover drives 94 % of what it is commanded
 SIGMA = 0.05  # the variable's prior (OdometryNoiseConfig.slip_sigma)
@@ -32,9 +30,7 @@ START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8
 @pytest.fixture(scope="module")
 def slipping():
     # a quiet world (forward white noise 0.01 m/sqrt(m)): the constant share is then the slip
-    run = simulate(4, duration_s=90.0, frame_every=6, n_rocks=250, noise=QUIET)
-    run.steps = [dataclasses.replace(s, v_mps=s.v_mps / (1.0 - SLIP)) for s in run.steps]
-    return run
+    return overstate_commands(simulate(4, duration_s=90.0, frame_every=6, n_rocks=250, noise=QUIET), SLIP)
 
 
 def R_mid(run, k):
@@ -76,15 +72,7 @@ BIAS = 1.5e-3  # rad/s: 5 deg in 60 s, so that one test minute shows it
 
 @pytest.fixture(scope="module")
 def drifting():
-    run = simulate(3, duration_s=60.0, frame_every=6, n_rocks=250)
-    t0 = run.t[0]
-
-    def drift(t, R):
-        return exp_so3(np.array([0.0, 0.0, BIAS * (t - t0)])) @ R
-
-    run.steps = [dataclasses.replace(s, R_ref_base0=drift(s.t0, s.R_ref_base0), R_ref_base1=drift(s.t1, s.R_ref_base1))
-                 for s in run.steps]
-    return run
+    return drift_heading(simulate(3, duration_s=60.0, frame_every=6, n_rocks=250), BIAS)
 
 
 def _drive_heading(run, bias_sigma):
