@@ -113,3 +113,19 @@ def drift_heading(run: SynthRun, bias_radps: float) -> SynthRun:
     run.steps = [dataclasses.replace(s, R_ref_base0=drift(s.t0, s.R_ref_base0), R_ref_base1=drift(s.t1, s.R_ref_base1))
                  for s in run.steps]
     return run
+
+
+def end_errors(backend, run: SynthRun, blind_from: int | None = None) -> tuple[float, float, float, float]:
+    """Drive any back-end through ``run`` (landmark frames up to step ``blind_from``, then blind)
+    and return its final planar error (m) and position NEES, yaw error (rad) and yaw sigma (rad)."""
+    from reloc.geometry import wrap_angle, yaw_of
+
+    for k, step in enumerate(run.steps):
+        backend.predict(step)
+        if (blind_from is None or k < blind_from) and k in run.frames:
+            backend.observe(run.frames[k])
+    est = backend.estimate()
+    e = est.position_m[:2] - run.truth_p[-1, :2]
+    yaw_err = float(wrap_angle(yaw_of(est.T_world_base) - yaw_of(run.truth_R[-1])))
+    return (float(np.linalg.norm(e)), float(e @ np.linalg.solve(est.cov[:2, :2], e)), yaw_err,
+            float(np.sqrt(est.cov[5, 5])))

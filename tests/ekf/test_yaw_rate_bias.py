@@ -8,12 +8,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from ekf_synth import drift_heading, simulate
+from ekf_synth import drift_heading, end_errors, simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
 from reloc.backend import PoseEstimate
-from reloc.geometry import wrap_angle, yaw_of
 
 BIAS = 1.5e-3  # rad/s: 5 deg in 60 s, so that one test minute shows it
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
@@ -26,13 +25,8 @@ def drifting():
 
 def _drive(run, cfg):
     ekf = EkfSlam(START, cfg)
-    for k, step in enumerate(run.steps):
-        ekf.predict(step)
-        if k in run.frames:
-            ekf.observe(run.frames[k])
-    est = ekf.estimate()
-    err = float(wrap_angle(yaw_of(est.T_world_base) - yaw_of(run.truth_R[-1])))
-    return ekf, err, float(np.sqrt(est.cov[5, 5]))
+    *_, err, sig = end_errors(ekf, run)
+    return ekf, err, sig
 
 
 def test_the_filter_learns_the_drift_and_keeps_its_heading(drifting):

@@ -17,8 +17,8 @@ from fgslam.smoother import Isam2Smoother, SmootherConfig
 from fgslam.smoother.config import OdometryNoiseConfig
 from fgslam.smoother.odometry_factors import odometry_residual
 from reloc.backend import PoseEstimate
-from reloc.geometry import exp_so3, log_so3, wrap_angle, yaw_of
-from tests.ekf.ekf_synth import drift_heading, overstate_commands, simulate
+from reloc.geometry import exp_so3, log_so3
+from tests.ekf.ekf_synth import drift_heading, end_errors, overstate_commands, simulate
 
 SLIP = 0.06  # the rover drives 94 % of what it is commanded
 SIGMA = 0.05  # the variable's prior (OdometryNoiseConfig.slip_sigma)
@@ -44,13 +44,8 @@ def _drive(run, slip_sigma):
     cfg = SmootherConfig(odometry=OdometryNoiseConfig(sigma_forward_m_per_sqrtm=0.012, sigma_lateral_m_per_sqrtm=0.015,
                                                       slip_sigma=slip_sigma))
     sm = Isam2Smoother(START, cfg)
-    for k, step in enumerate(run.steps):
-        sm.predict(step)
-        if k < BLIND_FROM and k in run.frames:  # then blind: the wheels alone carry the rover
-            sm.observe(run.frames[k])
-    est = sm.estimate()
-    e = est.position_m[:2] - run.truth_p[-1, :2]
-    return sm, float(np.linalg.norm(e)), float(e @ np.linalg.solve(est.cov[:2, :2], e))
+    err, nees, *_ = end_errors(sm, run, BLIND_FROM)  # then blind: the wheels alone carry the rover
+    return sm, err, nees
 
 
 def test_the_smoother_learns_the_slip_and_drives_blind_on_it(slipping):
@@ -78,13 +73,8 @@ def drifting():
 def _drive_heading(run, bias_sigma):
     cfg = SmootherConfig(odometry=OdometryNoiseConfig(sigma_rot_radpsqrts=2e-4, yaw_rate_bias_sigma_radps=bias_sigma))
     sm = Isam2Smoother(START, cfg)
-    for k, step in enumerate(run.steps):
-        sm.predict(step)
-        if k in run.frames:
-            sm.observe(run.frames[k])
-    est = sm.estimate()
-    err = float(wrap_angle(yaw_of(est.T_world_base) - yaw_of(run.truth_R[-1])))
-    return sm, err, float(np.sqrt(est.cov[5, 5]))
+    *_, err, sig = end_errors(sm, run)
+    return sm, err, sig
 
 
 def test_the_smoother_learns_the_yaw_rate_bias_and_keeps_its_heading(drifting):
