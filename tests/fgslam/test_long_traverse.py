@@ -20,14 +20,14 @@ from reloc.measurements import CmdVel
 def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     cfg = LongTraverseConfig(min_duration_s=1800.0, isam2_fixed_lag_s=90.0)
     assert backend_overrides_for("isam2", None, 1000.0, cfg) is None  # a yard: full history
-    long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "consider"}
+    long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "estimate"}
     assert backend_overrides_for("isam2", None, 3600.0, cfg) == long_isam2
     over = {"calibration": {"yaw_sigma_deg": 0.15}}
     assert backend_overrides_for("isam2", over, 3600.0, cfg) == {**over, **long_isam2}
-    assert backend_overrides_for("isam2", {"fixed_lag_s": 0.0, "calibration_mode": "estimate"}, 3600.0, cfg) == {
-        "fixed_lag_s": 0.0, "calibration_mode": "estimate"}
-    estimate = LongTraverseConfig(isam2_calibration_mode="estimate")
-    assert backend_overrides_for("isam2", None, 3600.0, estimate)["calibration_mode"] == "estimate"
+    assert backend_overrides_for("isam2", {"fixed_lag_s": 0.0, "calibration_mode": "consider"}, 3600.0, cfg) == {
+        "fixed_lag_s": 0.0, "calibration_mode": "consider"}
+    consider = LongTraverseConfig(isam2_calibration_mode="consider")
+    assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
     assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
                                                                  "trajectory_period_s": 0.1}
     assert backend_overrides_for("ekf", {"trajectory_period_s": 0.0}, 3600.0, cfg) == {
