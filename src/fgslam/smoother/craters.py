@@ -15,11 +15,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from fgslam.smoother.kinds import kind_config
 from fgslam.smoother.landmarks import LandmarkStore
-from fgslam.smoother.rocks import RockLandmarks
+from fgslam.smoother.rocks import RockLandmarks, considered_calibration_cov
 from reloc.association import AssociationConfig
 from reloc.backend import LandmarkUpdateReport
 from reloc.budget import ObservationBudget
@@ -57,7 +55,7 @@ class CraterLandmarks(RockLandmarks):
         c = kind_config(type(self), kind, config)
         super().__init__(config, kind, calib_key if c.share_calibration else None)
         if calib_key is not None and not c.share_calibration:  # the calibration's prior considered
-            self._consider_cov = config.calibration_consider_scale * np.diag(config.calibration.prior_sigmas() ** 2)
+            self._consider_cov = considered_calibration_cov(config)
         self.crater_config = c
         self.cfg = dataclasses.replace(
             config.landmarks, association=c.association, min_obs_to_insert=c.min_obs_to_insert,

@@ -23,6 +23,12 @@ from reloc.kinds import LandmarkKind
 from reloc.measurements import RockObservations
 
 
+def considered_calibration_cov(config) -> np.ndarray:
+    """(4, 4): the calibration prior a layer considers in its measurements' covariance
+    (``SmootherConfig.calibration_consider_scale`` times the prior's)."""
+    return config.calibration_consider_scale * np.diag(config.calibration.prior_sigmas() ** 2)
+
+
 class RockLandmarks:
     """Rocks in the smoother (see module doc)."""
 
@@ -35,7 +41,7 @@ class RockLandmarks:
         self.calib_key = calib_key
         cal = config.calibration
         # "consider": the calibration prior's effect on each measurement joins its covariance
-        self._consider_cov = (config.calibration_consider_scale * np.diag(cal.prior_sigmas() ** 2)
+        self._consider_cov = (considered_calibration_cov(config)
                               if cal.enabled and calib_key is None and config.calibration_mode == "consider" else None)
         self.store = LandmarkStore(self.cfg)
         self.n_frames = self.n_frames_skipped = 0
