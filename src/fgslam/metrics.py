@@ -196,8 +196,9 @@ class ConsistencyStats:
 
 
 def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict]:
-    """Consistency statistics and the per-stamp series (t, err_xy (K,2), err_yaw, sigma_xy (K,2),
-    sigma_yaw, nees_xy, nees_yaw, nees).
+    """Consistency statistics and the per-stamp series (t, err_xy (K,2), err_z, err_yaw, sigma_xy
+    (K,2), sigma_z, sigma_yaw, nees_xy, nees_yaw, nees). The NEES are planar (x, y, yaw: what a
+    fix corrects); the height's error and sigma come beside them.
 
     Uses the pose covariance convention of reloc.backend (indices 0, 1 = world x, y; 5 = yaw).
     """
@@ -205,6 +206,7 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
         raise MetricsError("consistency needs an estimate with covariance")
     p_gt, yaw_gt, inside = interpolate_truth(gt, est.t)
     e_xy = est.positions_m[inside, :2] - p_gt[inside, :2]
+    e_z = est.positions_m[inside, 2] - p_gt[inside, 2]
     e_yaw = wrap_angle(yaw_of(est.T_world_base[inside]) - yaw_gt[inside])
     P = est.cov[inside][:, [0, 1, 5]][:, :, [0, 1, 5]]
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
@@ -230,8 +232,10 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
     series = {
         "t": est.t[inside],
         "err_xy": e_xy,
+        "err_z": e_z,
         "err_yaw": e_yaw,
         "sigma_xy": sig[:, :2],
+        "sigma_z": np.sqrt(np.clip(est.cov[inside][:, 2, 2], 0.0, None)),
         "sigma_yaw": sig[:, 2],
         "nees_xy": nees_xy,
         "nees_yaw": nees_yaw,

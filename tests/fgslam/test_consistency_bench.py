@@ -36,6 +36,8 @@ def test_bins_cover_the_stretch_and_the_yaw_sigma_grows(sim_dir, tmp_path, capsy
     # no fixes: nothing observes the heading, so its sigma only grows (first-estimate Jacobians)
     assert all(b2["sigma_yaw_deg"] >= b1["sigma_yaw_deg"] - 1e-3 for b1, b2 in zip(bins, bins[1:]))
     assert res["ate_m"] < 0.5
+    # the height beside the plane: its error inside 3 of its own sigmas on this short yard drive
+    assert all(abs(b["err_z_m"]) <= 3.0 * b["sigma_z_m"] for b in bins) and "height error m" in text
 
 
 def test_an_override_reaches_the_backend(sim_dir, capsys):

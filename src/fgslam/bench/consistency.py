@@ -7,7 +7,7 @@ fixes from pulling (docs/ekf.md, "Consistency"). The back-end runs with the sett
 run`` gives it (the directory's ``backend.yaml`` overrides, the long-traverse defaults, rocks
 only unless ``--craters``), over the first ``--duration-s`` seconds, and every ``--bin-s``
 seconds of stream the table gives the distance driven, the RMS planar error and the mean planar
-sigma, the yaw error and sigma at the bin's end, and the mean position and yaw NEES of the bin.
+sigma, the height error and sigma and the yaw error and sigma at the bin's end, and the mean position and yaw NEES of the bin.
 The whole stretch's NEES gets the two-sided verdict of :func:`fgslam.nees.nees_test`.
 """
 
@@ -78,6 +78,8 @@ def drift_table(directory: Path, backend: str, duration_s: float, bin_s: float =
             "t_s": round(float(lo + bin_s), 1), "distance_m": round(float(dist[i]), 1),
             "err_xy_m": round(float(np.sqrt(np.mean(np.sum(ser["err_xy"][m] ** 2, axis=1)))), 3),
             "sigma_xy_m": round(float(np.mean(np.linalg.norm(ser["sigma_xy"][m], axis=1))), 3),
+            "err_z_m": round(float(ser["err_z"][i]), 3),
+            "sigma_z_m": round(float(ser["sigma_z"][i]), 3),
             "err_yaw_deg": round(float(np.degrees(ser["err_yaw"][i])), 3),
             "sigma_yaw_deg": round(float(np.degrees(ser["sigma_yaw"][i])), 3),
             "nees_xy": round(float(np.mean(ser["nees_xy"][m])), 2),
@@ -93,11 +95,12 @@ def format_table(res: dict) -> str:
     head = (f"{res['backend']} over the first {res['duration_s']:g} s of {res['directory']} (no fixes): "
             f"ATE {res['ate_m']:.3f} m, position NEES {c['position']['mean']:.2f} ({c['position']['verdict']}), "
             f"yaw NEES {c['yaw']['mean']:.2f} ({c['yaw']['verdict']}), {res['wall_s']:.0f} s wall")
-    lines = [head, "", "| t s | distance m | error xy m | sigma xy m | yaw error deg | yaw sigma deg | NEES xy | NEES yaw |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [head, "", "| t s | distance m | error xy m | sigma xy m | height error m | height sigma m "
+             "| yaw error deg | yaw sigma deg | NEES xy | NEES yaw |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["bins"]:
         lines.append(f"| {r['t_s']:g} | {r['distance_m']:.1f} | {r['err_xy_m']:.3f} | {r['sigma_xy_m']:.3f} | "
-                     f"{r['err_yaw_deg']:+.3f} | {r['sigma_yaw_deg']:.3f} | {r['nees_xy']:.2f} | {r['nees_yaw']:.2f} |")
+                     f"{r['err_z_m']:+.3f} | {r['sigma_z_m']:.3f} | {r['err_yaw_deg']:+.3f} | {r['sigma_yaw_deg']:.3f} | {r['nees_xy']:.2f} | {r['nees_yaw']:.2f} |")
     return "\n".join(lines)
 
 
