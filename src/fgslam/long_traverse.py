@@ -39,8 +39,9 @@ class LongTraverseConfig:
     # C(0) on every rock factor. "consider" (its prior added to each measurement's covariance, C++
     # factors, ~1.8x faster) averages an error every observation shares: over the first 400 m of
     # rocky-1km its along-track sigma stayed at 5 cm while the error grew to 1 m (position NEES
-    # 39). Estimated (the range scale alone, as the kilometre worlds' backend.yaml sizes it, with
-    # the gyro's rotation noise) the position NEES is 2.0 on sparse-5km (docs/smoother.md)
+    # 39). Estimated (the mounting's roll and pitch and the range scale, as the kilometre worlds'
+    # backend.yaml sizes them, with the gyro's rotation noise) the position NEES is 0.96-2.46 on
+    # the presets' first 400 m (docs/smoother.md)
     isam2_calibration_mode: Literal["estimate", "consider"] = "estimate"
     # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
     # rock that far is behind a rover that does not come back

@@ -107,12 +107,12 @@ def test_a_kilometre_run_sizes_the_matcher_to_its_catalog_and_its_world_yaml_is_
     ekf = cfg.backend_overrides["ekf"]
     assert ekf["yaw_rate_bias_sigma_radps"] == TACTICAL_GYRO["gyro_bias_sigma_radps"]
     assert ekf["yaw_rate_bias_walk_radps_rsqrt_s"] == TACTICAL_GYRO["gyro_bias_walk_radps_rsqrt_s"]
-    # the smoother: the gyro's angle random walk and its bias as white over 300 s; the range scale
-    # alone as its calibration variable
+    # the smoother: the gyro's angle random walk and its bias as white over 300 s; the mounting's
+    # roll and pitch and the range scale as its calibration variable (not the mounting's yaw)
     isam2 = cfg.backend_overrides["isam2"]
     rot = isam2["odometry"]["sigma_rot_radpsqrts"]
     assert rot == pytest.approx(np.hypot(4.4e-5, TACTICAL_GYRO["gyro_bias_sigma_radps"] * np.sqrt(300.0)), rel=1e-3)
-    assert isam2["calibration"] == {"scale_sigma": 0.003}
+    assert isam2["calibration"] == {"roll_pitch_sigma_deg": 0.15, "scale_sigma": 0.003}
     cat = np.genfromtxt(out / "catalog.csv", delimiter=",", names=True)
     rid = np.loadtxt(out / "catalog_truth.csv", skiprows=1, dtype=np.int64)
     rocks = np.genfromtxt(out / "rocks_true.csv", delimiter=",", names=True, dtype=None)
