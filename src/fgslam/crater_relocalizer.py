@@ -13,7 +13,11 @@ overrides (``CompareConfig.kind_relocalizers["craters"]``). What differs from ro
 - rim diameters are measured to ~10 % on both sides: diameter ratios beyond 1.5 are not paired;
 - a few craters suffice where rocks need many: an attempt needs ``min_landmarks`` 6 mapped
   craters and a match 4 inliers (the matcher's false-alarm bound still decides);
-- craters are seen seconds apart, so attempts come every 10 s.
+- craters are seen seconds apart, so attempts come every 10 s;
+- where too few craters are mapped to match (young, sparse ground: sparse-5km's first 400 m
+  passes 4-6 catalogued craters and no catalogued rock), one crater identified alone with its
+  catalog entry fixes the rover's position (``single_landmark``; its gate and false-alarm bound
+  in :class:`fgslam.relocalizer_config.RelocalizerConfig`).
 
 Beside the rock relocalizer a run gets fixes from rocks, from craters or from both, whichever the
 place offers (each relocalizer labels its attempts with its kind).
@@ -32,7 +36,7 @@ CRATER_MATCHER = {
 CRATER_RELOCALIZER_DEFAULTS = RelocalizerConfig(
     period_s=10.0, min_landmarks=6, max_landmarks=80, max_radius_m=80.0, select="nearest", min_travel_m=1.0,
     fit_radius_m=40.0, sigma_floor_m=0.1, prior_min_radius_m=5.0, crop_margin_m=5.0, crop_snap_m=5.0,
-    matcher=CRATER_MATCHER,
+    single_landmark=True, matcher=CRATER_MATCHER,
 )
 
 

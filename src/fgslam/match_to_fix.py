@@ -8,6 +8,8 @@ global (x, y, yaw): ``xy = s R xy_est + t``, ``yaw = yaw_est + theta``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
@@ -112,3 +114,81 @@ def rover_weighted_fit(
     rmse = float(np.sqrt(np.sum(w * np.sum(res * res, axis=1)) / np.sum(w)))
     cov = similarity_covariance(sim, local_xy, world_xy, floor_sigma_m=floor_sigma_m, with_scale=False, weights=w)
     return float(sim.theta_rad), np.asarray(sim.translation, float), 1.0, rmse, cov
+
+
+@dataclass(frozen=True)
+class SingleIdentification:
+    """One mapped landmark (index ``landmark`` into the map) identified with catalog row ``row``:
+    its squared Mahalanobis distance ``d2`` in the gate and ``false_alarm``, the odds that an
+    entry of compatible size lies that close by chance rather than being the landmark itself."""
+
+    landmark: int
+    row: int
+    d2: float
+    false_alarm: float
+
+
+def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, catalog_xy: np.ndarray,
+                    catalog_size: np.ndarray, tree, cfg: RelocalizerConfig, sigma_m: float,
+                    size_ratio_max: float) -> SingleIdentification | None:
+    """The landmark among ``idx`` (within ``cfg.single_radius_m`` of ``xy_rover``) that one
+    catalog entry alone explains (see ``RelocalizerConfig.single_landmark``), the one with the
+    smallest false-alarm bound; None when no landmark passes. ``tree`` is a KD-tree of
+    ``catalog_xy`` (scipy's ``cKDTree``)."""
+    best: SingleIdentification | None = None
+    area_density = np.pi * cfg.single_density_radius_m ** 2
+    for i in np.asarray(idx, dtype=int):
+        l_xy = lmap.xyz_world_m[i, :2]
+        if np.hypot(*(l_xy - np.asarray(xy_rover)[:2])) > cfg.single_radius_m:
+            continue
+        S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_m ** 2 * np.eye(2)
+        det = float(np.linalg.det(S))
+        if not np.isfinite(det) or det <= 0.0:
+            continue
+        size = float(lmap.size_m[i])
+
+        def compatible(rows: np.ndarray) -> np.ndarray:
+            cs = catalog_size[rows]
+            ratio = np.maximum(cs, size) / np.maximum(np.minimum(cs, size), 1e-9)
+            return rows[ratio <= size_ratio_max]
+
+        reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
+        rows = compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int))
+        d = catalog_xy[rows] - l_xy
+        d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
+        inside = d2 <= cfg.single_gate_chi2
+        if np.count_nonzero(inside) != 1:  # nothing there, or ambiguous
+            continue
+        k = int(np.flatnonzero(inside)[0])
+        # chance entries (their density, the candidate counted) against the landmark's own
+        # density at the candidate: rho / N(d; 0, S)
+        n_near = len(compatible(np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)))
+        false_alarm = n_near / area_density * 2.0 * np.pi * np.sqrt(det) * np.exp(0.5 * d2[k])
+        if false_alarm > cfg.single_max_false_alarm:
+            continue
+        if best is None or false_alarm < best.false_alarm:
+            best = SingleIdentification(int(i), int(rows[k]), float(d2[k]), float(false_alarm))
+    return best
+
+
+def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy: np.ndarray,
+                    catalog_xy: np.ndarray, cfg: RelocalizerConfig, sigma_m: float, t_recv: float,
+                    cov_scale: float = 1.0) -> GlobalFix:
+    """Position fix at ``est.t`` from one landmark identified with a catalog entry: the rover
+    moved by what puts the landmark on the entry, ``xy = xy_est + (catalog - landmark)``; the
+    heading stays the estimate's with ``single_sigma_yaw_rad`` (no heading information).
+
+    Its planar covariance is the catalog's ``sigma_m`` per axis plus the landmark's error
+    relative to the rover, taken as its world covariance less the rover's (the landmark is
+    placed from the rover's poses, so their shared drift cancels; never below
+    ``sigma_floor_m``), times ``inflation``^2 as a matched fix's (unmodelled errors of the rim's
+    centre on both sides)."""
+    rel = np.asarray(landmark_cov_xy, float) - np.asarray(est.cov[:2, :2], float)
+    w, V = np.linalg.eigh(0.5 * (rel + rel.T))
+    rel = (V * np.maximum(w, cfg.sigma_floor_m ** 2)) @ V.T
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = cfg.inflation ** 2 * (sigma_m ** 2 * np.eye(2) + rel)
+    cov[2, 2] = cfg.single_sigma_yaw_rad ** 2
+    xy = est.position_m[:2] + (np.asarray(catalog_xy, float) - np.asarray(landmark_xy, float))
+    return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=float(est.yaw_rad),
+                     cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0)

@@ -29,7 +29,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fgslam.local_window import LocalMapWindow
-from fgslam.match_to_fix import fix_from_similarity, rover_weighted_fit, select_local_map
+from fgslam.match_to_fix import (
+    fix_from_similarity,
+    fix_from_single,
+    identify_single,
+    rover_weighted_fit,
+    select_local_map,
+)
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.geometry import wrap_angle
@@ -66,7 +72,8 @@ class FixAttempt:
     ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
     (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time;
     ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``);
-    ``source``: the relocalizer that made it (its kinds, "+"-joined)."""
+    ``source``: the relocalizer that made it (its kinds, "+"-joined); ``single``: a position fix
+    from one identified landmark, with ``false_alarm`` its wrong-identification bound."""
 
     t_meas: float
     n_landmarks: int
@@ -78,6 +85,8 @@ class FixAttempt:
     est_xyyaw: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracked: bool = False
     source: str = ""
+    single: bool = False  # a position fix from one landmark identified alone (single_landmark)
+    false_alarm: float = 0.0  # its bound: other catalog entries the gate holds by chance
 
 
 class Relocalizer:
@@ -120,6 +129,8 @@ class Relocalizer:
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
+        self._single_tree = None  # KD-tree of the catalog for single-landmark fixes, built at first use
+        self.n_single_fixes = 0
         self.window = (LocalMapWindow(self.config.window_path_m, self.config.window_max_kept)
                        if self.config.window_path_m > 0 else None)
 
@@ -166,7 +177,8 @@ class Relocalizer:
             lmap = self.window.update(lmap, est.position_m)
         idx = select_local_map(lmap, est.position_m, cfg, self.min_size_m)
         if idx.size < cfg.min_landmarks:
-            return FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
+            single = self._single(lmap, idx, est, est_xyyaw, 0.0)
+            return single or FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
         local_xy = lmap.xyz_world_m[idx, :2]
         t0 = time.perf_counter()
         prior = None
@@ -186,7 +198,8 @@ class Relocalizer:
             result = self.matcher.match(local_xy, lmap.size_m[idx], prior)
         dt = time.perf_counter() - t0
         if result is None:
-            return FixAttempt(est.t, int(idx.size), "no match", dt, est_xyyaw=est_xyyaw)
+            single = self._single(lmap, idx, est, est_xyyaw, dt)
+            return single or FixAttempt(est.t, int(idx.size), "no match", dt, est_xyyaw=est_xyyaw)
         if abs(float(result.scale) - 1.0) > cfg.max_scale_error:
             log.info("t=%.1f s: match rejected, scale %.3f", est.t, result.scale)
             return FixAttempt(est.t, int(idx.size), "bad scale", dt, est_xyyaw=est_xyyaw)
@@ -214,6 +227,39 @@ class Relocalizer:
         self._fix_times.append(est.t)
         np.add.at(self._rock_uses, np.unique(pairs[:, 1]), 1)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
+
+    def _single(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
+                dt_match: float) -> FixAttempt | None:
+        """A position fix from one landmark identified with a catalog entry on its own
+        (``RelocalizerConfig.single_landmark``), or None: off, lost, or no landmark passes."""
+        cfg = self.config
+        if not cfg.single_landmark or idx.size == 0:
+            return None
+        if float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0))) > cfg.lost_sigma_m:
+            return None  # lost: the gate would hold half the catalog
+        t0 = time.perf_counter()
+        if self._single_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._single_tree = cKDTree(self.catalog.xy_m)
+        mc = self._mcfg if self._mcfg is not None else getattr(self.matcher, "config", None)
+        sigma_m, ratio = float(getattr(mc, "sigma_m", 0.5)), float(getattr(mc, "size_ratio_max", 2.0))
+        hit = identify_single(lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
+                              self._single_tree, cfg, sigma_m, ratio)
+        dt = dt_match + time.perf_counter() - t0
+        if hit is None:
+            return None
+        l_xy, c_xy = lmap.xyz_world_m[hit.landmark, :2], self.catalog.xy_m[hit.row]
+        latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
+        fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_m,
+                              t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])))
+        self._fix_times.append(est.t)
+        self._rock_uses[hit.row] += 1
+        self.n_single_fixes += 1
+        log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
+                  hit.false_alarm)
+        return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy[None, :], c_xy[None, :], est_xyyaw,
+                          single=True, false_alarm=hit.false_alarm)
 
     def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
         """Match against the catalog rocks that can hold the map under ``prior``; returns the

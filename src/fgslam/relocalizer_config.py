@@ -111,6 +111,22 @@ class RelocalizerConfig:
     # can hold the map.
     crop_snap_m: Positive = 2.0
     crop_cache: PositiveInt = 8
+    # Single landmark: where the local map holds too few landmarks to match (or they do not
+    # match), one mapped landmark within single_radius_m of the rover may be identified with a
+    # catalog entry on its own and fix the rover's position (not its heading). It is identified
+    # when exactly one catalog entry of compatible size (ratio <= the matcher's size_ratio_max) lies
+    # inside the gate (chi-square single_gate_chi2, 2 dof, of the landmark's world covariance S plus
+    # the matcher's sigma_m per axis) and the odds that a chance entry lies that close rather than
+    # the landmark's own (the catalog's local density of compatible sizes within
+    # single_density_radius_m, the candidate counted, over the Gaussian density N(d; 0, S) at the
+    # candidate's offset d) are at most single_max_false_alarm: the bound on a wrong fix per
+    # attempt. Off for rocks (a rock catalog is dense); on for craters (fgslam.crater_relocalizer)
+    single_landmark: bool = False
+    single_radius_m: Positive = 25.0
+    single_gate_chi2: Positive = 13.82  # 99.9 % of a 2-dof chi-square
+    single_max_false_alarm: Annotated[float, Interval(gt=0, lt=1)] = 1e-3
+    single_density_radius_m: Positive = 200.0
+    single_sigma_yaw_rad: Positive = 0.5  # the fix's heading sigma: no heading information
     matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
 
     def __post_init__(self) -> None:

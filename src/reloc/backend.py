@@ -59,7 +59,9 @@ class LandmarkMap:
 
     ``ids`` (N,) int, ``xyz_world_m`` (N, 3), ``cov_world_m2`` (N, 3, 3), ``size_m`` (N,) mean
     estimated diameter, ``n_obs`` (N,) number of associated observations, ``kind`` the landmark
-    kind's name (:mod:`reloc.kinds`).
+    kind's name (:mod:`reloc.kinds`). ``cov_world_m2`` is where the landmark is in the world, the
+    back-end's drift included (the EKF's marginal; the smoother's map uncertainty plus the pose's
+    when the landmark was last seen), not its position relative to the rover.
     """
 
     ids: np.ndarray

@@ -509,3 +509,24 @@ def test_a_marginalizing_keyframe_takes_its_predicted_covariance_an_upper_bound(
         assert np.linalg.eigvalsh(c - m).min() > -1e-3 * np.linalg.eigvalsh(m).max()
         assert np.trace(c) < 3.0 * np.trace(m)  # and a close one (one keyframe's odometry)
     assert all(np.allclose(c, m) for p, c, m in seen if not p)
+
+
+def test_the_landmark_map_covariance_holds_the_drift():
+    """The map given to the relocalizer is in the world: its covariance holds the drift of the poses
+    that placed each landmark (the records' own covariance is relative to the map around them,
+    and against the truth it is ~100x optimistic on this drifting run)."""
+    from scipy.spatial import cKDTree
+
+    run = simulate_synthetic(SyntheticConfig(seed=11, duration_s=120.0))
+    sm = Isam2Smoother(run.initial_pose)
+    drive(sm, run.measurements, [])
+    tree = cKDTree(run.rocks_world_m)
+
+    def nees(m):
+        _, j = tree.query(m.xyz_world_m)
+        e = m.xyz_world_m[:, :2] - run.rocks_world_m[j, :2]
+        return float(np.mean(np.einsum("ki,kij,kj->k", e, np.linalg.inv(m.cov_world_m2[:, :2, :2]), e)))
+
+    world = sm.landmark_map("rocks")
+    assert len(world) > 15 and 0.3 < nees(world) < 5.0  # 2 dof
+    assert nees(sm.kinds.named("rocks").landmark_map()) > 50.0

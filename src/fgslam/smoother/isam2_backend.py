@@ -229,7 +229,20 @@ class Isam2Smoother(LateFixes, Backend):
         """Landmarks of ``kind`` in the graph (and those retired from the fixed-lag window), world
         frame; empty for a kind not observed yet."""
         layer = self.kinds.named(kind)
-        return LandmarkMap.empty(kind) if layer is None else layer.landmark_map()
+        return LandmarkMap.empty(kind) if layer is None else layer.landmark_map(self._position_cov_at)
+
+    def _position_cov_at(self, t: np.ndarray) -> np.ndarray:
+        """(K, 3, 3): the causal position covariance (world) of the latest keyframe at or before
+        each of the times ``t`` (K,); zeros before the first."""
+        covs = self.kfs.online_cov
+        if not covs:
+            return np.zeros((len(t), 3, 3))
+        i = np.array([self.kfs.before(float(ti)) for ti in np.asarray(t, float)], dtype=int)
+        i = np.minimum(i, len(covs) - 1)
+        out = np.zeros((len(i), 3, 3))
+        for k in np.unique(i[i >= 0]):
+            out[i == k] = covs[k][:3, :3]
+        return out
 
     def trajectory(self) -> Trajectory:
         """Smoothed keyframe poses with marginal covariances (protocol convention)."""

@@ -128,15 +128,22 @@ class RockLandmarks:
     def n_landmarks(self) -> int:
         return len(self.store.mapped())
 
-    def landmark_map(self) -> LandmarkMap:
-        """Rocks in the graph (and those retired from the fixed-lag window), world frame."""
+    def landmark_map(self, pose_cov_at=None) -> LandmarkMap:
+        """Rocks in the graph (and those retired from the fixed-lag window), world frame. A
+        record's covariance is its uncertainty relative to the map around it (what association
+        needs); ``pose_cov_at(t)`` (K,) -> (K, 3, 3), the rover's position covariance in world at
+        those times, adds the drift of the poses that last saw each landmark (the map's world
+        convention, :class:`reloc.backend.LandmarkMap`)."""
         recs = self.store.mapped()
         if not recs:
             return LandmarkMap.empty(self.kind)
+        cov = np.array([r.cov_world_m2 for r in recs])
+        if pose_cov_at is not None:
+            cov = cov + pose_cov_at(np.array([r.t_last for r in recs]))
         return LandmarkMap(
             ids=np.array([r.lid for r in recs], dtype=int),
             xyz_world_m=np.array([r.xyz_world_m for r in recs]),
-            cov_world_m2=np.array([r.cov_world_m2 for r in recs]),
+            cov_world_m2=cov,
             size_m=np.array([r.size_sum_m / max(r.n_obs, 1) for r in recs]),
             n_obs=np.array([r.n_obs for r in recs], dtype=int),
             kind=self.kind,

@@ -1,0 +1,100 @@
+"""A crater identified alone with its catalog entry fixes the rover's position where too few
+craters are mapped to match: the fix moves the rover by what puts the crater on its entry, its
+covariance is the catalog's sigma plus the crater's error relative to the rover, and ambiguous,
+crowded or lost cases give no fix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fgslam.crater_relocalizer import CraterRelocalizer
+from fgslam.relocalizer import RelocalizerError
+from fgslam.relocalizer_config import RelocalizerConfig
+from reloc.backend import LandmarkMap, PoseEstimate
+from reloc.measurements import RockCatalog
+
+# the rover's estimate has drifted by DRIFT: the crater it maps sits DRIFT off its catalog entry
+DRIFT = np.array([1.2, -0.8])
+CRATER = np.array([110.0, 48.0])
+
+
+def _est(sigma_m: float, t: float = 100.0) -> PoseEstimate:
+    T = np.eye(4)
+    T[:2, 3] = CRATER - np.array([12.0, 3.0]) + DRIFT  # 12 m behind the crater, as it believes
+    T[:2, :2] = [[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]]
+    cov = np.diag([sigma_m**2, sigma_m**2, 0.01, 1e-4, 1e-4, 1e-5])
+    return PoseEstimate(t, T, cov)
+
+
+def _map(est: PoseEstimate, rel_sigma_m: float = 0.15) -> LandmarkMap:
+    """One crater of 3 m, mapped DRIFT off its truth, its world covariance the rover's plus its own."""
+    cov = np.eye(3) * rel_sigma_m**2
+    cov[:2, :2] += est.cov[:2, :2]
+    return LandmarkMap(np.array([7]), np.array([[*(CRATER + DRIFT), 0.0]]), cov[None], np.array([3.0]),
+                       np.array([6]), "craters")
+
+
+def _catalog(extra_xy=(), extra_size=()) -> RockCatalog:
+    rng = np.random.default_rng(5)
+    far = rng.uniform(-400, 400, (40, 2))
+    far = far[np.linalg.norm(far - CRATER, axis=1) > 150]  # young ground: craters ~100 m apart or more
+    xy = np.vstack([CRATER, far, np.reshape(extra_xy, (-1, 2))])
+    size = np.concatenate([[3.1], rng.uniform(1.0, 6.0, len(far)), np.asarray(extra_size, float)])
+    return RockCatalog(xy, size, np.ones(len(xy)))
+
+
+def _reloc(cat: RockCatalog, **kw) -> CraterRelocalizer:
+    return CraterRelocalizer(cat, {"min_new_observations": 0, "min_travel_m": 0.0, "min_turn_deg": 0.0, **kw})
+
+
+def test_one_identified_crater_fixes_the_position_within_its_covariance():
+    est = _est(0.5)
+    att = _reloc(_catalog()).attempt({"craters": _map(est)}, est)
+    assert att.status == "fix" and att.single and att.fix.n_inliers == 1
+    err = np.array([att.fix.x_m, att.fix.y_m]) - (est.position_m[:2] - DRIFT)
+    assert np.linalg.norm(err) < 1e-9  # exact: the map's only error was the drift
+    assert att.fix.yaw_rad == pytest.approx(est.yaw_rad)
+    cov = att.fix.cov_xyyaw
+    # the catalog's 0.3 m per axis plus the crater's 0.15 m relative to the rover (not the 0.5 m
+    # drift), inflated as a matched fix is (1.75)
+    assert np.allclose(cov[:2, :2], 1.75**2 * (0.3**2 + 0.15**2) * np.eye(2), atol=1e-9)
+    assert np.sqrt(cov[2, 2]) == pytest.approx(0.5)  # no heading information
+    assert 0 < att.false_alarm <= 1e-3
+    assert np.allclose(att.world_xy, [CRATER]) and np.allclose(att.local_xy, [CRATER + DRIFT])
+
+
+def test_a_second_use_of_the_same_crater_is_deweighted():
+    est = _est(0.5)
+    reloc = _reloc(_catalog())
+    a, b = (reloc.attempt({"craters": _map(est)}, est) for _ in range(2))
+    assert np.allclose(b.fix.cov_xyyaw, 2.0 * a.fix.cov_xyyaw)  # correlation "rocks": 1 + earlier uses
+
+
+def test_ambiguous_crowded_far_or_lost_gives_no_fix():
+    est = _est(0.5)
+    near = CRATER + np.array([1.0, 0.0])  # a second entry of the same size inside the gate
+    assert _reloc(_catalog([near], [2.9])).attempt({"craters": _map(est)}, est).status == "too few landmarks"
+    # of another size it is not a candidate
+    assert _reloc(_catalog([near], [9.0])).attempt({"craters": _map(est)}, est).status == "fix"
+    # a crowded neighbourhood: a chance entry in the gate is too likely
+    ring = CRATER + 30.0 * np.column_stack([np.cos(np.arange(60)), np.sin(np.arange(60))]) * np.linspace(0.3, 1, 60)[:, None]
+    att = _reloc(_catalog(ring, np.full(60, 3.0))).attempt({"craters": _map(est)}, est)
+    assert att.status == "too few landmarks"
+    # the drift beyond the gate: no candidate
+    wide = _est(0.1)
+    assert _reloc(_catalog()).attempt({"craters": _map(wide)}, wide).status == "too few landmarks"
+    # a crater beyond single_radius_m, or a lost rover
+    assert _reloc(_catalog(), single_radius_m=5.0).attempt({"craters": _map(est)}, est).status == "too few landmarks"
+    lost = _est(6.0)
+    assert _reloc(_catalog()).attempt({"craters": _map(lost)}, lost).status == "too few landmarks"
+    # off
+    assert _reloc(_catalog(), single_landmark=False).attempt({"craters": _map(est)}, est).status == "too few landmarks"
+
+
+def test_single_settings_are_checked():
+    with pytest.raises(RelocalizerError, match="single_max_false_alarm"):
+        RelocalizerConfig(single_max_false_alarm=0.0)
+    with pytest.raises(RelocalizerError, match="single_gate_chi2"):
+        RelocalizerConfig(single_gate_chi2=-1.0)
+    assert not RelocalizerConfig().single_landmark  # rocks: off
