@@ -51,12 +51,13 @@ class CairnLandmarks:
                 j, rec = live[int(np.argmin(d))]
                 rec["n_obs"] += 1
                 rec["size_sum"] += float(obs.size_m[i])
+                rec["t_last"] = obs.t
                 n_assoc += 1
             else:
                 j = max(self.records, default=-1) + 1
                 cov_w = T_now[:3, :3] @ obs.cov_base_m2[i] @ T_now[:3, :3].T
                 self.records[j] = {"xyz": world[i].copy(), "cov": cov_w, "n_obs": 1, "size_sum": float(obs.size_m[i]),
-                                   "retired": False}
+                                   "retired": False, "t_last": obs.t}
                 frame.values.insert(self.key(j), world[i].copy())
                 n_new += 1
             if j in self._seen:
@@ -92,11 +93,12 @@ class CairnLandmarks:
     def n_landmarks(self) -> int:
         return len(self.records)
 
-    def landmark_map(self) -> LandmarkMap:
+    def landmark_map(self, pose_cov_at) -> LandmarkMap:
         ids = np.array(sorted(self.records), dtype=int)
         recs = [self.records[j] for j in ids]
-        return LandmarkMap(ids, np.array([r["xyz"] for r in recs]).reshape(-1, 3),
-                           np.array([r["cov"] for r in recs]).reshape(-1, 3, 3),
+        # the map is in the world: the cairn's own covariance plus the drift of the pose that last saw it
+        cov = np.array([r["cov"] for r in recs]).reshape(-1, 3, 3) + pose_cov_at(np.array([r["t_last"] for r in recs]))
+        return LandmarkMap(ids, np.array([r["xyz"] for r in recs]).reshape(-1, 3), cov,
                            np.array([r["size_sum"] / r["n_obs"] for r in recs]),
                            np.array([r["n_obs"] for r in recs], dtype=int), self.kind)
 

@@ -17,7 +17,10 @@ built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibr
 - ``marginalize(index, solver)``: the landmark leaves the fixed-lag window: freeze its estimate;
 - ``prune(t, oldest_kf)``: drop candidates that timed out or rest on marginalized keyframes;
 - ``refresh(T_world_kf, solver)``: after an update, pull the solver's estimates it caches;
-- ``landmark_map(pose_cov_at)``, ``n_landmarks``, ``n_frames`` (frames used), ``stats()`` (dict of counters);
+- ``landmark_map(pose_cov_at)``: the kind's map in the world (:class:`reloc.backend.LandmarkMap`);
+  ``pose_cov_at(t)`` (K,) -> (K, 3, 3) is the rover's position covariance at those times, to add
+  to covariances relative to the map;
+- ``n_landmarks``, ``n_frames`` (frames used), ``stats()`` (dict of counters);
 - optionally ``config_class``, built from ``SmootherConfig.kinds[name]`` (:func:`kind_config`).
 
 The smoother keeps them in a :class:`SmootherKinds` (a :class:`reloc.kind_layers.KindLayers`).
