@@ -86,7 +86,7 @@ class FixAttempt:
     tracked: bool = False
     source: str = ""
     single: bool = False  # a position fix from one landmark identified alone (single_landmark)
-    false_alarm: float = 0.0  # its bound: other catalog entries the gate holds by chance
+    false_alarm: float = 0.0  # its bound: the odds that a chance catalog entry lies that close
 
 
 class Relocalizer:
@@ -130,7 +130,6 @@ class Relocalizer:
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
         self._single_tree = None  # KD-tree of the catalog for single-landmark fixes, built at first use
-        self.n_single_fixes = 0
         self.window = (LocalMapWindow(self.config.window_path_m, self.config.window_max_kept)
                        if self.config.window_path_m > 0 else None)
 
@@ -255,7 +254,6 @@ class Relocalizer:
                               t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])))
         self._fix_times.append(est.t)
         self._rock_uses[hit.row] += 1
-        self.n_single_fixes += 1
         log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
                   hit.false_alarm)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy[None, :], c_xy[None, :], est_xyyaw,
