@@ -341,3 +341,24 @@ def test_a_signalled_process_ends_even_when_its_shutdown_would_wait_for_ever():
     assert proc.returncode == 143
     assert time.monotonic() - t0 < 30
     assert "did not finish" in proc.stderr
+
+
+def test_run_says_when_a_sim_directory_calibration_goes_unused(tmp_path, caplog):
+    """A kilometre sim directory's backend.yaml sizes the back-ends' calibration to its sensors:
+    `fgslam run DIR` without --config says it is not used (and names the flag); with it, or with
+    no backend.yaml, nothing is said."""
+    import logging
+
+    from fgslam.cli.cmd_run import warn_unused_backend_yaml
+
+    d = tmp_path / "km"
+    d.mkdir()
+    with caplog.at_level(logging.WARNING):
+        warn_unused_backend_yaml(d, None)
+        assert not caplog.records
+        (d / "backend.yaml").write_text("backend_overrides: {}\n")
+        warn_unused_backend_yaml(d, d / "backend.yaml")
+        warn_unused_backend_yaml(None, None)
+        assert not caplog.records
+        warn_unused_backend_yaml(d, None)
+    assert len(caplog.records) == 1 and f"--config {d / 'backend.yaml'}" in caplog.records[0].getMessage()

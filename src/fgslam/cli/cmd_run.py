@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -9,6 +10,8 @@ import typer
 
 from fgslam.cli.app import app
 from fgslam.cli.viewer import CONNECT_HELP, SERVE_HELP, SPAWN_HELP
+
+log = logging.getLogger(__name__)
 
 
 def parse_floats(text: str, option: str, names: tuple[tuple[str, ...], ...]) -> tuple[float, ...]:
@@ -98,6 +101,15 @@ def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, 
         return load_bag(bag, catalog, spec, topics=topics, images=images, image_progress=progress)
 
 
+def warn_unused_backend_yaml(directory: Path | None, config: Path | None) -> None:
+    """A simulated run's ``backend.yaml`` sizes the back-ends' calibration states to its sensors;
+    run without it (no ``--config``), a kilometre run is uncalibrated (rocky-1km with iSAM2: height
+    4.1 m off after 1 km against 0.06 m at 400 m with it), so say so."""
+    if config is None and directory is not None and (Path(directory) / "backend.yaml").is_file():
+        log.warning("%s holds the back-ends' calibration for this run's sensors and is not used: pass "
+                    "--config %s", Path(directory) / "backend.yaml", Path(directory) / "backend.yaml")
+
+
 def load_config(path: Path | None):
     """CompareConfig from a YAML file of overrides or a saved config.yaml (defaults when None)."""
     from fgslam.config_file import load_compare_config
@@ -136,6 +148,7 @@ def run_cmd(
 
     console = Console(stderr=True)
     cfg = load_config(config)
+    warn_unused_backend_yaml(directory, config)
     topics = topic_map(cfg.topics, topic)
     spec = parse_start(start, start_sigma)
     live = live_url(spawn, serve, connect, console)
