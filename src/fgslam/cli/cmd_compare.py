@@ -69,13 +69,15 @@ def compare_cmd(
     """Compare EKF and iSAM2 (each with and without the same relocalization fixes) on each DIR."""
     from rich.console import Console
 
-    from fgslam.cli.cmd_run import load_config
+    from fgslam.cli.cmd_run import load_config, warn_unused_backend_yaml
     from fgslam.cli.viewer import live_url
     from fgslam.inputs import bag_topics, load_sim_dir
     from fgslam.io.outdir import OutputDir
 
     console = Console(stderr=True)
     cfg = with_backends(load_config(config), backends)
+    for d in directories:
+        warn_unused_backend_yaml(d, config)
     live = live_url(spawn, serve, connect, console)
     with OutputDir(out, "compare", force=force) as od:  # checked, created and locked before any work
         topics = bag_topics(cfg.topics)
