@@ -343,20 +343,24 @@ def test_a_signalled_process_ends_even_when_its_shutdown_would_wait_for_ever():
     assert "did not finish" in proc.stderr
 
 
-def test_run_says_when_a_sim_directory_calibration_goes_unused(tmp_path, caplog):
+def test_run_takes_a_sim_directory_calibration_unless_told_otherwise(tmp_path, caplog):
     """A kilometre sim directory's backend.yaml sizes the back-ends' calibration to its sensors:
-    `fgslam run DIR` without --config says it is not used (and names the flag); with it, or with
-    no backend.yaml, nothing is said."""
+    `fgslam run DIR` takes it unless --config names another; `fgslam compare` (one config for all
+    its directories) says when one goes unused, naming the flag."""
     import logging
 
-    from fgslam.cli.cmd_run import warn_unused_backend_yaml
+    from fgslam.cli.cmd_run import sim_dir_config, warn_unused_backend_yaml
 
     d = tmp_path / "km"
     d.mkdir()
+    assert sim_dir_config(d, None) is None and sim_dir_config(None, None) is None
     with caplog.at_level(logging.WARNING):
         warn_unused_backend_yaml(d, None)
         assert not caplog.records
-        (d / "backend.yaml").write_text("backend_overrides: {}\n")
+    (d / "backend.yaml").write_text("backend_overrides: {}\n")
+    other = tmp_path / "other.yaml"
+    assert sim_dir_config(d, None) == d / "backend.yaml" and sim_dir_config(d, other) == other
+    with caplog.at_level(logging.WARNING):
         warn_unused_backend_yaml(d, d / "backend.yaml")
         warn_unused_backend_yaml(None, None)
         assert not caplog.records
