@@ -147,10 +147,9 @@ def backend_calibration(cfg: SimConfig) -> dict:
     if st.centre_error_frac:
         ekf["rock_cov_scale"] = 4.0
     cal_e: dict = {}
-    if st.extrinsic_sigma_deg:
-        cal_e.update(roll_pitch_sigma_deg=st.extrinsic_sigma_deg, yaw_sigma_deg=st.extrinsic_sigma_deg)
     cal_i: dict = {}
     if st.extrinsic_sigma_deg:
+        cal_e.update(roll_pitch_sigma_deg=st.extrinsic_sigma_deg, yaw_sigma_deg=st.extrinsic_sigma_deg)
         # the smoother estimates the mounting's roll and pitch but not its yaw: with the yaw as a
         # variable its heading ran off where rocks are few (plains-2km +3.9 deg in 3000 s against
         # the IMU's +0.4); without the pitch the landmarks pulled its height off at the pitch's

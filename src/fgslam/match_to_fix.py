@@ -128,13 +128,21 @@ class SingleIdentification:
     false_alarm: float
 
 
+def _size_compatible(rows: np.ndarray, catalog_size: np.ndarray, size: float, size_ratio_max: float | None) -> np.ndarray:
+    """The catalog ``rows`` whose diameter is within ``size_ratio_max`` of ``size`` (all for None)."""
+    if size_ratio_max is None:
+        return rows
+    cs = catalog_size[rows]
+    return rows[np.maximum(cs, size) / np.maximum(np.minimum(cs, size), 1e-9) <= size_ratio_max]
+
+
 def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, catalog_xy: np.ndarray,
                     catalog_size: np.ndarray, tree, cfg: RelocalizerConfig, sigma_m: float,
-                    size_ratio_max: float) -> SingleIdentification | None:
+                    size_ratio_max: float | None) -> SingleIdentification | None:
     """The landmark among ``idx`` (within ``cfg.single_radius_m`` of ``xy_rover``) that one
     catalog entry alone explains (see ``RelocalizerConfig.single_landmark``), the one with the
     smallest false-alarm bound; None when no landmark passes. ``tree`` is a KD-tree of
-    ``catalog_xy`` (scipy's ``cKDTree``)."""
+    ``catalog_xy`` (scipy's ``cKDTree``); ``size_ratio_max`` None: no size check (the matcher's)."""
     best: SingleIdentification | None = None
     area_density = np.pi * cfg.single_density_radius_m ** 2
     for i in np.asarray(idx, dtype=int):
@@ -146,14 +154,9 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
         if not np.isfinite(det) or det <= 0.0:
             continue
         size = float(lmap.size_m[i])
-
-        def compatible(rows: np.ndarray) -> np.ndarray:
-            cs = catalog_size[rows]
-            ratio = np.maximum(cs, size) / np.maximum(np.minimum(cs, size), 1e-9)
-            return rows[ratio <= size_ratio_max]
-
         reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
-        rows = compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int))
+        rows = _size_compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int), catalog_size, size,
+                                size_ratio_max)
         d = catalog_xy[rows] - l_xy
         d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
         inside = d2 <= cfg.single_gate_chi2
@@ -162,7 +165,8 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
         k = int(np.flatnonzero(inside)[0])
         # chance entries (their density, the candidate counted) against the landmark's own
         # density at the candidate: rho / N(d; 0, S)
-        n_near = len(compatible(np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)))
+        near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
+        n_near = len(_size_compatible(near, catalog_size, size, size_ratio_max))
         false_alarm = n_near / area_density * 2.0 * np.pi * np.sqrt(det) * np.exp(0.5 * d2[k])
         if false_alarm > cfg.single_max_false_alarm:
             continue

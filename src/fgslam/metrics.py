@@ -208,7 +208,8 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
     e_xy = est.positions_m[inside, :2] - p_gt[inside, :2]
     e_z = est.positions_m[inside, 2] - p_gt[inside, 2]
     e_yaw = wrap_angle(yaw_of(est.T_world_base[inside]) - yaw_gt[inside])
-    P = est.cov[inside][:, [0, 1, 5]][:, :, [0, 1, 5]]
+    C = est.cov[inside]
+    P = C[:, [0, 1, 5]][:, :, [0, 1, 5]]
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     e3 = np.concatenate([e_xy, e_yaw[:, None]], axis=1)
     nees = np.einsum("ki,ki->k", e3, np.linalg.solve(P, e3[:, :, None])[:, :, 0])
@@ -235,7 +236,7 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
         "err_z": e_z,
         "err_yaw": e_yaw,
         "sigma_xy": sig[:, :2],
-        "sigma_z": np.sqrt(np.clip(est.cov[inside][:, 2, 2], 0.0, None)),
+        "sigma_z": np.sqrt(np.clip(C[:, 2, 2], 0.0, None)),
         "sigma_yaw": sig[:, 2],
         "nees_xy": nees_xy,
         "nees_yaw": nees_yaw,

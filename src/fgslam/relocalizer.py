@@ -181,7 +181,7 @@ class Relocalizer:
         local_xy = lmap.xyz_world_m[idx, :2]
         t0 = time.perf_counter()
         prior = None
-        sigma_pos = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
+        sigma_pos = est.planar_sigma_m
         if cfg.prior_sigmas is not None and sigma_pos <= cfg.lost_sigma_m:  # lost: the whole catalog
             from reloc.matcher import MatchPrior
             from reloc.procrustes import Similarity2D
@@ -234,7 +234,7 @@ class Relocalizer:
         cfg = self.config
         if not cfg.single_landmark or idx.size == 0:
             return None
-        if float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0))) > cfg.lost_sigma_m:
+        if est.planar_sigma_m > cfg.lost_sigma_m:
             return None  # lost: the gate would hold half the catalog
         t0 = time.perf_counter()
         if self._single_tree is None:
@@ -242,9 +242,13 @@ class Relocalizer:
 
             self._single_tree = cKDTree(self.catalog.xy_m)
         mc = self._mcfg if self._mcfg is not None else getattr(self.matcher, "config", None)
-        sigma_m, ratio = float(getattr(mc, "sigma_m", 0.5)), float(getattr(mc, "size_ratio_max", 2.0))
+        if mc is None:  # a given matcher without a MatcherConfig: the matcher's defaults
+            from reloc.matcher import MatcherConfig
+
+            mc = MatcherConfig()
+        sigma_m = float(mc.sigma_m)
         hit = identify_single(lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
-                              self._single_tree, cfg, sigma_m, ratio)
+                              self._single_tree, cfg, sigma_m, mc.size_ratio_max)
         dt = dt_match + time.perf_counter() - t0
         if hit is None:
             return None

@@ -48,6 +48,11 @@ class PoseEstimate:
         return self.T_world_base[:3, 3]
 
     @property
+    def planar_sigma_m(self) -> float:
+        """The largest planar standard deviation (m) of the position (its x/y covariance's)."""
+        return float(np.sqrt(max(np.linalg.eigvalsh(self.cov[:2, :2])[-1], 0.0)))
+
+    @property
     def yaw_rad(self) -> float:
         R = self.T_world_base[:3, :3]
         return float(np.arctan2(R[1, 0], R[0, 0]))

@@ -77,6 +77,9 @@ def test_ambiguous_crowded_far_or_lost_gives_no_fix():
     assert _reloc(_catalog([near], [2.9])).attempt({"craters": _map(est)}, est).status == "too few landmarks"
     # of another size it is not a candidate
     assert _reloc(_catalog([near], [9.0])).attempt({"craters": _map(est)}, est).status == "fix"
+    # ... unless the matcher checks no size: then it is a candidate, and the pair is ambiguous
+    no_size = _reloc(_catalog([near], [9.0]), matcher={"size_ratio_max": None})
+    assert no_size.attempt({"craters": _map(est)}, est).status == "too few landmarks"
     # a crowded neighbourhood: a chance entry in the gate is too likely
     ring = CRATER + 30.0 * np.column_stack([np.cos(np.arange(60)), np.sin(np.arange(60))]) * np.linspace(0.3, 1, 60)[:, None]
     att = _reloc(_catalog(ring, np.full(60, 3.0))).attempt({"craters": _map(est)}, est)

@@ -38,7 +38,7 @@ HISTORY_S = 120.0  # estimates kept while lost, to find the one at a late fix's 
 
 def is_lost(est: PoseEstimate, lost_sigma_m: float = LOST_SIGMA_M) -> bool:
     """Whether the largest planar position sigma of ``est`` exceeds ``lost_sigma_m``."""
-    return float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0))) > lost_sigma_m
+    return est.planar_sigma_m > lost_sigma_m
 
 
 def planar_motion(xyyaw_from: np.ndarray, xyyaw_to: np.ndarray) -> np.ndarray:

@@ -7,7 +7,8 @@ fixes from pulling (docs/ekf.md, "Consistency"). The back-end runs with the sett
 run`` gives it (the directory's ``backend.yaml`` overrides, the long-traverse defaults, rocks
 only unless ``--craters``), over the first ``--duration-s`` seconds, and every ``--bin-s``
 seconds of stream the table gives the distance driven, the RMS planar error and the mean planar
-sigma, the height error and sigma and the yaw error and sigma at the bin's end, and the mean position and yaw NEES of the bin.
+sigma, the height error and sigma and the yaw error and sigma at the bin's end, and the mean
+position and yaw NEES of the bin.
 The whole stretch's NEES gets the two-sided verdict of :func:`fgslam.nees.nees_test`.
 """
 
@@ -100,7 +101,8 @@ def format_table(res: dict) -> str:
              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["bins"]:
         lines.append(f"| {r['t_s']:g} | {r['distance_m']:.1f} | {r['err_xy_m']:.3f} | {r['sigma_xy_m']:.3f} | "
-                     f"{r['err_z_m']:+.3f} | {r['sigma_z_m']:.3f} | {r['err_yaw_deg']:+.3f} | {r['sigma_yaw_deg']:.3f} | {r['nees_xy']:.2f} | {r['nees_yaw']:.2f} |")
+                     f"{r['err_z_m']:+.3f} | {r['sigma_z_m']:.3f} | {r['err_yaw_deg']:+.3f} | "
+                     f"{r['sigma_yaw_deg']:.3f} | {r['nees_xy']:.2f} | {r['nees_yaw']:.2f} |")
     return "\n".join(lines)
 
 

@@ -101,7 +101,7 @@ class OutOfCatalogProbe:
         if len(lmap) == 0:
             return None
         extent = float(np.max(np.linalg.norm(lmap.xyz_world_m[:, :2] - est.position_m[:2], axis=1)))
-        sigma = float(np.sqrt(max(np.linalg.eigvalsh(est.cov[:2, :2])[-1], 0.0)))
+        sigma = est.planar_sigma_m
         reach = 2.0 * extent + self.config.prior_min_radius_m + (self.config.prior_sigmas or 0.0) * sigma
         now = self._true_xy(est.t)
         past = self._past_t < est.t

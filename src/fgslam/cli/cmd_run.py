@@ -101,14 +101,21 @@ def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, 
         return load_bag(bag, catalog, spec, topics=topics, images=images, image_progress=progress)
 
 
+def _unused_backend_yaml(directory: Path | None, config: Path | None) -> Path | None:
+    """``directory``'s ``backend.yaml`` when it has one and no ``--config`` names another file."""
+    f = None if config is not None or directory is None else Path(directory) / "backend.yaml"
+    return f if f is not None and f.is_file() else None
+
+
 def warn_unused_backend_yaml(directory: Path | None, config: Path | None) -> None:
     """A simulated run's ``backend.yaml`` sizes the back-ends' calibration states to its sensors;
     ``fgslam compare`` (one config for all its directories) without ``--config`` runs a kilometre
     directory uncalibrated (rocky-1km with iSAM2: height 4.1 m off after 1 km, 0.23 m with it),
     so say so."""
-    if config is None and directory is not None and (Path(directory) / "backend.yaml").is_file():
+    f = _unused_backend_yaml(directory, config)
+    if f is not None:
         log.warning("%s holds the back-ends' calibration for this run's sensors and is not used: pass "
-                    "--config %s", Path(directory) / "backend.yaml", Path(directory) / "backend.yaml")
+                    "--config %s", f, f)
 
 
 def sim_dir_config(directory: Path | None, config: Path | None) -> Path | None:
@@ -116,11 +123,11 @@ def sim_dir_config(directory: Path | None, config: Path | None) -> Path | None:
     ``backend.yaml`` when it has one (a kilometre world's: its sensors' calibration; without it
     rocky-1km with iSAM2 ended 4.1 m off in height after 1 km, 0.23 m with it), as ``./dev demo``
     does."""
-    if config is None and directory is not None and (Path(directory) / "backend.yaml").is_file():
-        log.info("using %s (the back-ends' calibration for this run's sensors; --config FILE for another)",
-                 Path(directory) / "backend.yaml")
-        return Path(directory) / "backend.yaml"
-    return config
+    f = _unused_backend_yaml(directory, config)
+    if f is None:
+        return config
+    log.info("using %s (the back-ends' calibration for this run's sensors; --config FILE for another)", f)
+    return f
 
 
 def load_config(path: Path | None):

@@ -237,11 +237,10 @@ class Isam2Smoother(LateFixes, Backend):
         covs = self.kfs.online_cov
         if not covs:
             return np.zeros((len(t), 3, 3))
-        i = np.array([self.kfs.before(float(ti)) for ti in np.asarray(t, float)], dtype=int)
-        i = np.minimum(i, len(covs) - 1)
-        out = np.zeros((len(i), 3, 3))
-        for k in np.unique(i[i >= 0]):
-            out[i == k] = covs[k][:3, :3]
+        i = np.searchsorted(np.asarray(self.kfs.t[: len(covs)]), np.asarray(t, float), side="right") - 1
+        used, where = np.unique(np.maximum(i, 0), return_inverse=True)
+        out = np.array([covs[k][:3, :3] for k in used])[where.reshape(-1)]
+        out[i < 0] = 0.0
         return out
 
     def trajectory(self) -> Trajectory:
