@@ -104,6 +104,7 @@ def kill_pool(pool, spare: frozenset = frozenset()) -> None:
     procs = getattr(pool, "_processes", None)  # private, but the only handle on the workers
     procs = set(procs.values()) if isinstance(procs, dict) else set()
     procs |= set(mp.active_children()) - set(spare)
+    manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() forgets it
     for p in procs:
         with contextlib.suppress(Exception):
             p.kill()
@@ -111,6 +112,12 @@ def kill_pool(pool, spare: frozenset = frozenset()) -> None:
     for p in procs:
         with contextlib.suppress(Exception):
             p.join(timeout=5.0)
+    # the pool's manager thread closes its wake-up pipe as it ends; the interpreter's exit hook
+    # writes to that pipe without the pool's lock, and a close racing that write printed
+    # "Exception ignored ... Bad file descriptor" at exit. Waiting for the thread here leaves the
+    # pipe closed (and marked so) before any exit hook runs.
+    if manager is not None and manager is not threading.current_thread():
+        manager.join(timeout=5.0)
 
 
 @contextlib.contextmanager

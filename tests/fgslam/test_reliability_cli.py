@@ -292,6 +292,31 @@ def test_a_signal_while_the_workers_are_forked_still_ends_the_comparison(tmp_pat
     assert not out.exists() or not list(out.glob("results.json"))
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forks")
+def test_kill_pool_leaves_no_worker_and_no_pool_thread_for_the_exit_hook():
+    """A killed pool's manager thread has ended and closed its wake-up pipe before kill_pool
+    returns: the interpreter's exit hook then finds nothing to write to (a close racing its write
+    once printed "Exception ignored ... Bad file descriptor" after a SIGTERM)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from fgslam.lifetime import kill_pool, worker_initializer
+
+    pool = ProcessPoolExecutor(max_workers=2, mp_context=mp.get_context("fork"),
+                               initializer=worker_initializer, initargs=(os.getpid(),))
+    futures = [pool.submit(time.sleep, 30.0) for _ in range(3)]
+    deadline = time.monotonic() + 10.0
+    while len(mp.active_children()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    manager, wakeup = pool._executor_manager_thread, pool._executor_manager_thread_wakeup
+    workers = list(pool._processes.values())
+    kill_pool(pool)
+    assert not any(p.is_alive() for p in workers)
+    assert not manager.is_alive()
+    assert wakeup._closed
+    assert all(f.done() for f in futures)
+
+
 def test_signals_deferred_holds_a_signal_to_the_end_of_the_block():
     from fgslam.lifetime import Terminated, signals_deferred, terminate_on_sigterm
 
