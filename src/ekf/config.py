@@ -99,6 +99,12 @@ class EkfConfig:
     # pass from 28 s to 11 s and the ATE from 0.057 to 0.008 m (100: 0.031, 200: 0.042); my2021,
     # my2022 and cnes kept their ATE (0.018 / 0.028 / 0.030 m)
     max_landmarks: PositiveInt = 150
+    # a landmark seen within this many seconds is not marginalised to make room for a new one.
+    # 0 (evict by age alone): where more landmarks are in view than the bound holds, a landmark a
+    # frame missed is swapped for one it saw, so the state follows the nearest, best-measured
+    # rocks (the dense my2020 yard: 0.027 m against 0.048 with 2 s); long traverses get 2 s
+    # (fgslam.long_traverse: rocky-1km's rocks were swapped 80 times a second)
+    keep_seen_s: NonNegative = 0.0
     # landmarks farther than this (m, planar) from the rover are out of reach and marginalised, so
     # a sparse world's state holds only what the camera can see again; 0 keeps them until the
     # bound above needs the room (long traverses get 40 m, fgslam.long_traverse)

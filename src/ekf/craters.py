@@ -26,8 +26,9 @@ from ekf.rocks import RockUpdate
 from reloc.association import AssociationConfig
 from reloc.backend import LandmarkUpdateReport
 from reloc.budget import ObservationBudget
-from reloc.config import NonNegative, Positive
+from reloc.config import NonNegative, NonNegativeInt, Positive
 from reloc.craters import CraterObservations
+from reloc.errors import ConfigError
 from reloc.kinds import LandmarkKind
 
 
@@ -43,6 +44,9 @@ class CraterEkfConfig:
     budget: ObservationBudget = field(default_factory=lambda: ObservationBudget(max_observations=10, max_new=0))
     skip_lone_ambiguous_pair: bool = True
     use: bool = True  # False: crater frames are counted and left out (a rocks-only run of the same stream)
+    # slots of the state's bound (EkfConfig.max_landmarks) that rocks may not take once a crater
+    # frame has come: rocks come 5 x as often and in tens, and took every slot on rocky-1km
+    reserved_landmarks: NonNegativeInt = 20
 
 
 class CraterUpdate(RockUpdate):
@@ -57,6 +61,10 @@ class CraterUpdate(RockUpdate):
             candidate_margin_m=c.candidate_margin_m, budget=c.budget,
             skip_lone_ambiguous_pair=c.skip_lone_ambiguous_pair), kind)
         self.crater_config = c
+        if c.reserved_landmarks > config.max_landmarks:
+            raise ConfigError(f"ekf.kinds.craters.reserved_landmarks ({c.reserved_landmarks}) exceeds "
+                                 f"max_landmarks ({config.max_landmarks})")
+        self.reserved = c.reserved_landmarks
         self.counts = {f"crater_{k}": v for k, v in self.counts.items()}
 
     def _bump(self, count: bool, **kw: int) -> None:

@@ -78,6 +78,8 @@ def yaw_column(R_world_base: np.ndarray, p_lin: np.ndarray, l_lin: np.ndarray) -
 class RockUpdate:
     """Stateless apart from its counters; operates on a :class:`FilterState` in place."""
 
+    reserved = 0  # landmark slots of the bound on the state that other kinds may not take
+
     def __init__(self, config: EkfConfig, kind: LandmarkKind) -> None:
         self.config = config
         self.kind = kind.name
@@ -183,10 +185,9 @@ class RockUpdate:
         far = np.zeros_like(stale)
         if cfg.forget_distance_m > 0:  # out of reach: marginalised whatever the count
             far = (np.linalg.norm(s.l_world[:, :2] - s.p_world[:2], axis=1) > cfg.forget_distance_m) & ~protect
-        excess = s.n_landmarks - int((stale | far).sum()) + new.size - cfg.max_landmarks
-        evict = s.book.evictions(excess, dist, protect | far)
+        evict = self._evictions(s, obs.t, new.size, stale | far, protect, dist)
         s.keep_landmarks(~(stale | far | evict))
-        room = max(cfg.max_landmarks - s.n_landmarks, 0)
+        room = self._room(s)
         n_new = min(new.size, room)  # what the bound on the state admits ...
         if cfg.budget.max_new > 0:  # ... and the budget
             room = min(room, cfg.budget.max_new)
@@ -205,6 +206,42 @@ class RockUpdate:
                    n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size,
                    n_lone_pairs_skipped=n_lone)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
+
+    def _held_by_others(self, s: FilterState, gone: np.ndarray | None = None) -> int:
+        """Slots the other kinds' reservations hold empty (``gone`` (N,): rows about to leave)."""
+        kinds = s.book.kind if gone is None else s.book.kind[~gone]
+        return sum(max(n - int(np.count_nonzero(kinds == code)), 0)
+                   for code, n in s.reserved.items() if code != self.code)
+
+    def _room(self, s: FilterState) -> int:
+        """New landmarks of this kind the bound on the state admits now."""
+        return max(self.config.max_landmarks - s.n_landmarks - self._held_by_others(s), 0)
+
+    def _evictions(self, s: FilterState, t: float, n_new: int, gone: np.ndarray, protect: np.ndarray,
+                   dist: np.ndarray) -> np.ndarray:
+        """(N,) bool: the landmarks marginalised to make room for ``n_new`` new ones at ``t``
+        (``gone`` (N,) leave anyway). Not one seen within ``keep_seen_s`` (a landmark still in
+        view is not swapped for a new one), nor, of another kind, one of that kind's reserved
+        share; but new landmarks within this kind's own reserved share take their slots from the
+        other kinds' landmarks beyond theirs, seen recently or not."""
+        s.reserved[self.code] = self.reserved  # this kind holds its share from its first frame
+        cfg = self.config
+        n_left = s.n_landmarks - int(gone.sum())
+        need = n_left + n_new + self._held_by_others(s, gone) - cfg.max_landmarks
+        if need <= 0:
+            return np.zeros(s.n_landmarks, dtype=bool)
+        kinds = s.book.kind[~gone]
+        surplus = {code: max(int(np.count_nonzero(kinds == code)) - n, 0)
+                   for code, n in s.reserved.items() if code != self.code}
+        recent = t - s.book.t_last < cfg.keep_seen_s
+        evict = s.book.evictions(need, dist, protect | gone | recent, surplus)
+        short = need - int(evict.sum())
+        claim = min(n_new, max(self.reserved - int(np.count_nonzero(kinds == self.code)), 0))
+        if short > 0 and claim > 0:
+            left = {code: n - int(np.count_nonzero(evict & (s.book.kind == code))) for code, n in surplus.items()}
+            own = s.book.kind == self.code
+            evict |= s.book.evictions(min(short, claim), dist, protect | gone | evict | own, left)
+        return evict
 
     @staticmethod
     def _predicted_cov(s: FilterState, cand: np.ndarray, H_pose: np.ndarray, H_l: np.ndarray) -> np.ndarray:

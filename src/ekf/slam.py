@@ -332,7 +332,6 @@ class EkfSlam(Backend):
             self._count["n_consensus_resets"] += 1
         s.P, res = joseph_update(s.P, np.arange(POSE_DIM), H, nu, R_fix)
         s.inject(res.dx)
-        s.reset_first_estimates()
         horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
         s.fix_times = tuple(t for t in s.fix_times if t >= horizon) + (fix.t_meas,)
         self._record()

@@ -67,6 +67,7 @@ class FilterState:
     calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
     calib_s: float = 1.0  # measured / true range
     t_last_frame: dict = field(default_factory=dict)  # kind name -> time of its last frame used
+    reserved: dict = field(default_factory=dict)  # kind code -> landmark slots it holds (from its first frame)
     # First-estimate Jacobians (EkfConfig.first_estimate_jacobians): the position the pose was
     # propagated to (its prior at the next update) and each landmark's position as initialised
     # from that prior. The Jacobians that couple rotation to position are evaluated there, so
@@ -103,6 +104,7 @@ class FilterState:
             book=self.book.copy(),
             t_last_attitude=self.t_last_attitude,
             t_last_frame=dict(self.t_last_frame),
+            reserved=dict(self.reserved),
             t_last_checkpoint=self.t_last_checkpoint,
             n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
             fix_times=self.fix_times,

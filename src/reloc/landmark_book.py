@@ -3,7 +3,8 @@
 A new landmark is *tentative*; it is *confirmed* once observed ``confirm_n_obs`` times within
 ``confirm_window_s`` of its first sighting, and dropped if that window passes first (one-off
 false detections never reach the map used for matching). When a back-end bounds its map, the
-book chooses what to evict: landmarks not seen for the longest time, then the farthest.
+book chooses what to evict: landmarks not seen for the longest time, then the farthest, within
+each kind's limit.
 
 Entries are kept in insertion order, so row ``i`` of the book is row ``i`` of the back-end's
 landmark arrays; every method that removes rows returns or takes a boolean keep mask. A book may
@@ -93,16 +94,22 @@ class LandmarkBook:
         """(N,) bool: tentative landmarks whose confirmation window has passed at ``t_now``."""
         return ~self.confirmed & (t_now - self.t_first > self.config.confirm_window_s)
 
-    def evictions(self, n_evict: int, distance_m: np.ndarray, protect: np.ndarray | None = None) -> np.ndarray:
+    def evictions(self, n_evict: int, distance_m: np.ndarray, protect: np.ndarray | None = None,
+                  at_most: dict[int, int] | None = None) -> np.ndarray:
         """(N,) bool: the ``n_evict`` landmarks to drop, least recently seen first, then farthest
-        (``distance_m`` (N,) from the rover); rows in ``protect`` (N,) bool are never chosen."""
+        (``distance_m`` (N,) from the rover); rows in ``protect`` (N,) bool are never chosen, and
+        at most ``at_most[code]`` of kind ``code`` (a kind's landmarks beyond its reserved share;
+        kinds not named are not limited)."""
         out = np.zeros(len(self), dtype=bool)
         if n_evict <= 0:
             return out
         allowed = np.ones(len(self), dtype=bool) if protect is None else ~np.asarray(protect, dtype=bool)
         rows = np.flatnonzero(allowed)
-        order = np.lexsort((-np.asarray(distance_m)[rows], self.t_last[rows]))
-        out[rows[order[:n_evict]]] = True
+        rows = rows[np.lexsort((-np.asarray(distance_m)[rows], self.t_last[rows]))]
+        for code, n in (at_most or {}).items():
+            of = self.kind[rows] == code
+            rows = rows[~of | (np.cumsum(of) <= n)]
+        out[rows[:n_evict]] = True
         return out
 
     def keep(self, mask: np.ndarray) -> None:

@@ -29,9 +29,9 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     consider = LongTraverseConfig(isam2_calibration_mode="consider")
     assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
     assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
-                                                                 "trajectory_period_s": 0.1}
+                                                                 "trajectory_period_s": 0.1, "keep_seen_s": 2.0}
     assert backend_overrides_for("ekf", {"trajectory_period_s": 0.0}, 3600.0, cfg) == {
-        "trajectory_period_s": 0.0, "forget_distance_m": 40.0}
+        "trajectory_period_s": 0.0, "forget_distance_m": 40.0, "keep_seen_s": 2.0}
     assert backend_overrides_for("ekf", over, 1000.0, cfg) is over
     assert backend_overrides_for("dr", None, 3600.0, cfg) is None
     assert backend_overrides_for("isam2", None, float("nan"), cfg) is None  # unknown span
