@@ -14,7 +14,6 @@ from ekf_synth import simulate
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
 from reloc.backend import PoseEstimate
-from reloc.geometry import skew
 
 SIGMA_P0, SIGMA_YAW0 = 0.5, np.radians(3.0)  # a start known this well: no landmark can do better
 
