@@ -40,18 +40,25 @@ class SolverUpdateError(SmootherError):
 
 def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Params:
     p = gtsam.ISAM2Params()
-    if cfg.fixed_lag_s > 0.0 or cfg.landmark_relinearize_scale == 1.0 or cfg.relinearize_threshold == 0.0:
-        # fixed-lag: landmarks leave the window linearized where they are, so they relinearize
-        # like poses (with the scale the fixed-lag ATE rose 25 %, at no speed gain)
-        p.setRelinearizeThreshold(cfg.relinearize_threshold)
-    else:  # full mode, per variable type: poses X (6,), every kind's landmarks, the calibration C (4,)
+    r = cfg.relinearize_threshold
+    fixed_lag = cfg.fixed_lag_s > 0.0
+    if r == 0.0 or (fixed_lag and cfg.fixed_lag_translation_threshold_m == 0.0) or (
+            not fixed_lag and cfg.landmark_relinearize_scale == 1.0):
+        p.setRelinearizeThreshold(r)
+    else:  # per variable type: poses X (6,), every kind's landmarks, the calibration C (4,)
+        # fixed-lag: a pose's translation and a landmark relinearize beyond
+        # fixed_lag_translation_threshold_m (a fix moves the whole window by decimetres, which
+        # relinearized nearly every variable at once and sent iSAM2 to a batch step); full mode:
+        # landmarks at landmark_relinearize_scale times the pose threshold
+        tr = cfg.fixed_lag_translation_threshold_m if fixed_lag else r
+        lm = cfg.fixed_lag_translation_threshold_m if fixed_lag else r * cfg.landmark_relinearize_scale
         th = gtsam.ISAM2ThresholdMap()
-        th.insert((POSE_SYMBOL, np.full(6, cfg.relinearize_threshold)))
+        th.insert((POSE_SYMBOL, np.array([r, r, r, tr, tr, tr])))  # Pose3 tangent: rotation, then translation
         for kind in kinds_with("smoother"):
             dim = kind.layer("smoother").variable.dim
-            th.insert((kind.symbol, np.full(dim, cfg.relinearize_threshold * cfg.landmark_relinearize_scale)))
-        th.insert((CALIB_SYMBOL, np.full(4, cfg.relinearize_threshold)))  # the stereo calibration, if any
-        th.insert((SLIP_SYMBOL, np.full(1, 0.1 * cfg.relinearize_threshold)))  # the slip, if estimated
+            th.insert((kind.symbol, np.full(dim, lm)))
+        th.insert((CALIB_SYMBOL, np.full(4, r)))  # the stereo calibration, if any
+        th.insert((SLIP_SYMBOL, np.full(1, 0.1 * r)))  # the slip, if estimated
         th.insert((YAW_BIAS_SYMBOL, np.full(1, 1e-7)))  # the yaw-rate bias (rad/s), if estimated
         p.setRelinearizeThreshold(th)
     p.relinearizeSkip = cfg.relinearize_skip
