@@ -63,7 +63,7 @@ class CraterUpdate(RockUpdate):
         self.crater_config = c
         if c.reserved_landmarks > config.max_landmarks:
             raise ConfigError(f"ekf.kinds.craters.reserved_landmarks ({c.reserved_landmarks}) exceeds "
-                                 f"max_landmarks ({config.max_landmarks})")
+                              f"max_landmarks ({config.max_landmarks})")
         self.reserved = c.reserved_landmarks
         self.counts = {f"crater_{k}": v for k, v in self.counts.items()}
 

@@ -122,6 +122,7 @@ class RockUpdate:
             self._bump(count, n_frames_skipped=1)
             return LandmarkUpdateReport(obs.t, n_det, 0, 0, n_det)
         s.t_last_frame[self.kind] = obs.t
+        s.reserved[self.code] = self.reserved  # this kind holds its share of the bound from its first frame
         z, Rz = calibrated_measurements(s, obs.xyz_base_m, obs.cov_base_m2 * cfg.rock_cov_scale)
         size = obs.size_m
         head = s.head
@@ -207,15 +208,18 @@ class RockUpdate:
                    n_lone_pairs_skipped=n_lone)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
 
-    def _held_by_others(self, s: FilterState, gone: np.ndarray | None = None) -> int:
-        """Slots the other kinds' reservations hold empty (``gone`` (N,): rows about to leave)."""
-        kinds = s.book.kind if gone is None else s.book.kind[~gone]
-        return sum(max(n - int(np.count_nonzero(kinds == code)), 0)
-                   for code, n in s.reserved.items() if code != self.code)
+    def _counts(self, s: FilterState, keep: np.ndarray | None = None) -> dict[int, int]:
+        """Landmarks per kind code that holds a reserve (of the rows in ``keep`` (N,), all for None)."""
+        kinds = s.book.kind if keep is None else s.book.kind[keep]
+        return {code: int(np.count_nonzero(kinds == code)) for code in s.reserved}
+
+    def _held_by_others(self, s: FilterState, counts: dict[int, int]) -> int:
+        """Slots the other kinds' reserves hold empty."""
+        return sum(max(n - counts[code], 0) for code, n in s.reserved.items() if code != self.code)
 
     def _room(self, s: FilterState) -> int:
         """New landmarks of this kind the bound on the state admits now."""
-        return max(self.config.max_landmarks - s.n_landmarks - self._held_by_others(s), 0)
+        return max(self.config.max_landmarks - s.n_landmarks - self._held_by_others(s, self._counts(s)), 0)
 
     def _evictions(self, s: FilterState, t: float, n_new: int, gone: np.ndarray, protect: np.ndarray,
                    dist: np.ndarray) -> np.ndarray:
@@ -224,21 +228,18 @@ class RockUpdate:
         view is not swapped for a new one), nor, of another kind, one of that kind's reserved
         share; but new landmarks within this kind's own reserved share take their slots from the
         other kinds' landmarks beyond theirs, seen recently or not."""
-        s.reserved[self.code] = self.reserved  # this kind holds its share from its first frame
-        cfg = self.config
-        n_left = s.n_landmarks - int(gone.sum())
-        need = n_left + n_new + self._held_by_others(s, gone) - cfg.max_landmarks
+        counts = self._counts(s, ~gone)
+        need = s.n_landmarks - int(gone.sum()) + n_new + self._held_by_others(s, counts) - self.config.max_landmarks
         if need <= 0:
             return np.zeros(s.n_landmarks, dtype=bool)
-        kinds = s.book.kind[~gone]
-        surplus = {code: max(int(np.count_nonzero(kinds == code)) - n, 0)
-                   for code, n in s.reserved.items() if code != self.code}
-        recent = t - s.book.t_last < cfg.keep_seen_s
+        surplus = {code: max(counts[code] - n, 0) for code, n in s.reserved.items() if code != self.code}
+        recent = t - s.book.t_last < self.config.keep_seen_s
         evict = s.book.evictions(need, dist, protect | gone | recent, surplus)
         short = need - int(evict.sum())
-        claim = min(n_new, max(self.reserved - int(np.count_nonzero(kinds == self.code)), 0))
+        claim = min(n_new, max(self.reserved - counts[self.code], 0))
         if short > 0 and claim > 0:
-            left = {code: n - int(np.count_nonzero(evict & (s.book.kind == code))) for code, n in surplus.items()}
+            taken = self._counts(s, evict)
+            left = {code: n - taken[code] for code, n in surplus.items()}
             own = s.book.kind == self.code
             evict |= s.book.evictions(min(short, claim), dist, protect | gone | evict | own, left)
         return evict
