@@ -20,8 +20,9 @@ what the simulator *writes*; the ground truth stays the rover's true motion:
   not jittered;
 - ``wrong_fixes``: not a sensor of the simulator (a bag holds no fixes): the fix source of
   ``fgslam bench faults`` (:class:`fgslam.fault_fixes.WrongFixes`) replaces every fix whose
-  ``t_meas`` falls in the window by one ``offset_m`` off in a seeded random direction and
-  ``yaw_deg`` off in yaw, keeping the matcher's claimed covariance (a confidently wrong match).
+  ``t_meas`` falls in the window (or a seeded ``fraction`` of them) by one ``offset_m`` off (or
+  uniform up to ``offset_max_m``) in a seeded random direction and ``yaw_deg`` off in yaw,
+  keeping the matcher's claimed covariance (a confidently wrong match).
 
 Core maths only: no I/O.
 """
@@ -30,11 +31,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from reloc.config import NonNegative, Positive, checked
+from reloc.config import Interval, NonNegative, Positive, checked
 from sim.errors import SimError
 
 FAULT_NAMES = ("camera_blackout", "no_rocks", "imu_bias_step", "stuck", "timestamp_jitter", "wrong_fixes")
@@ -102,12 +104,21 @@ class TimestampJitter:
 @checked(FaultConfigError)
 @dataclass(frozen=True)
 class WrongFixesConfig:
-    """A burst of confidently wrong global fixes (applied by the fix source, see module doc)."""
+    """Confidently wrong global fixes (applied by the fix source, see module doc): in the window,
+    each fix is wrong with probability ``fraction`` (1: a burst, every one), moved ``offset_m``
+    (or, with ``offset_max_m``, a distance uniform in [offset_m, offset_max_m]) in a random
+    direction and turned ``yaw_deg``."""
 
     start_s: NonNegative = 60.0
     duration_s: Positive | None = 60.0
     offset_m: NonNegative = 3.0
     yaw_deg: NonNegative = 10.0
+    fraction: Annotated[float, Interval(gt=0, le=1)] = 1.0
+    offset_max_m: Positive | None = None
+
+    def __post_init__(self) -> None:
+        if self.offset_max_m is not None and self.offset_max_m < self.offset_m:
+            raise FaultConfigError(f"wrong_fixes.offset_max_m ({self.offset_max_m}) is below offset_m ({self.offset_m})")
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,9 @@
 
 A bag holds no fixes, so a burst of wrong fixes cannot come from the simulator: it is injected
 where fixes are made. :class:`WrongFixes` wraps a relocalizer (:class:`fgslam.fix_sources.FixProducer`)
-and replaces every fix whose ``t_meas`` falls in the fault window by one moved ``offset_m`` in a
-seeded random direction and turned by ``+-yaw_deg`` (random sign), keeping the match's claimed
+and replaces every fix whose ``t_meas`` falls in the fault window (or a seeded ``fraction`` of
+them) by one moved ``offset_m`` (or a distance uniform up to ``offset_max_m``) in a seeded random
+direction and turned by ``+-yaw_deg`` (random sign), keeping the match's claimed
 covariance, inliers and RMSE: a confidently wrong match, which is what a repetitive rock field or
 a wrong catalog would give. A comparison computes its fixes once in the reference pass, so every
 back-end with relocalization receives the same wrong fixes.
@@ -58,12 +59,17 @@ class WrongFixes:
         fix = att.fix
         if fix is None or not self.window[0] <= fix.t_meas < self.window[1]:
             return att
-        bearing = self._rng.uniform(-np.pi, np.pi)
-        sign = 1.0 if self._rng.random() < 0.5 else -1.0
+        # one draw per fix in the window, used or not, so the wrong ones are the same for a seed
+        u, bearing, flip, r = self._rng.random(), self._rng.uniform(-np.pi, np.pi), self._rng.random(), self._rng.random()
+        if u >= self.fault.fraction:
+            return att
+        sign = 1.0 if flip < 0.5 else -1.0
+        hi = self.fault.offset_max_m
+        offset = self.fault.offset_m if hi is None else self.fault.offset_m + r * (hi - self.fault.offset_m)
         wrong = dataclasses.replace(
             fix,
-            x_m=fix.x_m + self.fault.offset_m * np.cos(bearing),
-            y_m=fix.y_m + self.fault.offset_m * np.sin(bearing),
+            x_m=fix.x_m + offset * np.cos(bearing),
+            y_m=fix.y_m + offset * np.sin(bearing),
             yaw_rad=float(wrap_angle(fix.yaw_rad + sign * np.deg2rad(self.fault.yaw_deg))),
         )
         self.n_wrong += 1

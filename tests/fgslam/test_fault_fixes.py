@@ -53,6 +53,29 @@ def test_wrong_fixes_only_inside_the_window_offset_and_seeded():
     assert len(bearings) == 5
 
 
+def test_a_fraction_of_the_fixes_wrong_with_offsets_in_a_range():
+    fault = WrongFixesConfig(start_s=0.0, duration_s=None, offset_m=5.0, offset_max_m=50.0, fraction=0.2)
+    (r,) = with_wrong_fixes([_Exact()], fault, (0.0, np.inf), seed=7)
+    atts = [r.attempt({}, _est(t)) for t in np.arange(0.0, 4000.0, 2.0)]
+    d = np.array([np.hypot(a.fix.x_m - 1.0, a.fix.y_m - 2.0) for a in atts])
+    wrong = d > 0
+    assert r.n_wrong == int(wrong.sum())
+    n = len(atts)  # 2000 fixes: the share within 4 binomial sigma of 20 %
+    assert abs(wrong.mean() - 0.2) < 4 * np.sqrt(0.2 * 0.8 / n)
+    assert d[wrong].min() >= 5.0 and d[wrong].max() <= 50.0
+    assert abs(np.median(d[wrong]) - 27.5) < 3.0  # uniform in [5, 50]
+    assert all(a.tracked for a, w in zip(atts, wrong) if not w)
+
+
+def test_wrong_fix_settings_are_checked():
+    from sim.faults import FaultConfigError
+
+    with pytest.raises(FaultConfigError, match="fraction"):
+        WrongFixesConfig(fraction=0.0)
+    with pytest.raises(FaultConfigError, match="offset_max_m"):
+        WrongFixesConfig(offset_m=10.0, offset_max_m=5.0)
+
+
 def test_recovery_time():
     t = np.arange(10.0)
     err = np.array([0.1, 0.1, 0.5, 0.5, 0.3, 0.1, 0.3, 0.1, 0.1, 0.1])
@@ -80,7 +103,7 @@ def test_relocalizer_skips_a_map_without_new_observations():
     xy = rng.uniform(0, 10, (20, 2))
     cat = RockCatalog(xy, np.full(20, 0.5), np.ones(20))
     matcher = _NoMatch()
-    reloc = Relocalizer(cat, {"min_new_observations": 3}, matcher=matcher)
+    reloc = Relocalizer(cat, {"min_new_observations": 3, "single_landmark": False}, matcher=matcher)
 
     def lmap(n_obs):
         return LandmarkMap(np.arange(20), np.column_stack([xy, np.zeros(20)]), np.tile(np.eye(3) * 1e-4, (20, 1, 1)),
@@ -92,5 +115,5 @@ def test_relocalizer_skips_a_map_without_new_observations():
     assert reloc.attempt(lmap(base + (np.arange(20) < 2)), _est(4.0)).status == "stale map"  # 2 < 3
     assert reloc.attempt(lmap(base + (np.arange(20) < 5)), _est(6.0)).status == "no match"
     assert matcher.calls == 2
-    off = Relocalizer(cat, {"min_new_observations": 0}, matcher=_NoMatch())
+    off = Relocalizer(cat, {"min_new_observations": 0, "single_landmark": False}, matcher=_NoMatch())
     assert [off.attempt(lmap(base), _est(t)).status for t in (0.0, 2.0)] == ["no match", "no match"]

@@ -176,7 +176,7 @@ def test_a_run_streams_pose_by_pose_while_it_runs(synth_dir, tmp_path):
         ents = _entities_when_written(saved, {"/synth/ekf/path", "/synth/errors/position/ekf_final"})
     mid = seen["mid"]
     assert mid and t_mid - 2 * rerun_log.LIVE_STEP_S <= mid[-1] < t_mid  # up to the pause, nothing later
-    assert len(mid) >= 0.4 * (t_mid - gt.t[0]) / rerun_log.LIVE_STEP_S  # about one a second (or per 0.5 m)
+    assert len(mid) >= 0.4 * (t_mid - gt.t[0]) / rerun_log.LIVE_STEP_S  # about one a second (or per 1 m)
     assert live.n_poses > len(mid) and {"/synth/ekf/path", "/synth/errors/position/ekf_final"} <= ents
 
 

@@ -34,9 +34,10 @@ def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
         assert f"{w}/{rerun_log.ENT_ERR_POS}/{key}" in paths
         assert f"{w}/{rerun_log.ENT_ERR_POS}/{key}_3sigma" in paths
         assert f"{w}/{rerun_log.ENT_ERR_YAW}/{key}" in paths
-    for ent in (rerun_log.ENT_ORBITAL, f"{rerun_log.ENT_CATALOG}/rocks", rerun_log.ENT_TRUTH, rerun_log.ENT_TRUTH_POSE,
+    for ent in (f"{rerun_log.ENT_CATALOG}/rocks", rerun_log.ENT_TRUTH, rerun_log.ENT_TRUTH_POSE,
                 rerun_log.ENT_MATCHES):
         assert f"{w}/{ent}" in paths
+    assert any(q.startswith(f"{w}/{rerun_log.ENT_ORBITAL}/") for q in paths)  # the image's tiles
     assert f"{w}/dr_reloc/{rerun_log.ENT_FIXES}" in paths  # fix events of the run that received fixes
     # static map, time-varying estimate on the sim_time timeline
     by_path = {}
@@ -46,7 +47,7 @@ def test_recording_holds_entities_timeline_and_blueprint(tmp_path, comparison):
     pose_chunks = by_path[f"{w}/dr_reloc/{rerun_log.ENT_POSE}"]
     assert all(rerun_log.TIMELINE in c.timeline_names for c in pose_chunks)
     on = comparison.runs["dr_reloc"].online
-    n_on = len(rerun_log.path_samples(on.t, on.positions_m))  # one sample per 0.5 m of path
+    n_on = len(rerun_log.path_samples(on.t, on.positions_m))  # one sample per 1 m of path
     assert 10 < n_on < len(on)
     assert sum(c.num_rows for c in pose_chunks) == n_on
     err_rows = sum(c.num_rows for c in by_path[f"{w}/{rerun_log.ENT_ERR_POS}/dr_reloc"] if not c.is_static)
@@ -82,9 +83,19 @@ def test_ellipses_are_three_sigma_and_rotated():
     assert abs(abs(axis[1]) - 1.0) < 1e-9
 
 
-def test_path_samples_every_half_metre_or_ten_seconds():
+def test_map_landmarks_are_discs_of_their_three_sigma_major_axis():
+    from fgslam.viz.landmarks import three_sigma_radius
+
+    c = np.zeros((2, 3, 3))
+    c[0, :2, :2] = [[4.0, 0.0], [0.0, 1.0]]
+    c[1, :2, :2] = [[2.0, 1.0], [1.0, 2.0]]  # eigenvalues 1 and 3, rotated 45 deg
+    c[:, 2, 2] = 100.0  # the height's variance is not the disc's
+    assert np.allclose(three_sigma_radius(c), [6.0, 3.0 * np.sqrt(3.0)])
+
+
+def test_path_samples_every_metre_or_ten_seconds():
     t = np.arange(0.0, 100.0, 0.1)
-    xy = np.column_stack([0.05 * t, np.zeros_like(t)])  # 0.05 m/s: 0.5 m every 10 s
+    xy = np.column_stack([0.05 * t, np.zeros_like(t)])  # 0.05 m/s: 1 m every 20 s, so every 10 s
     xy[t > 50.0, 0] = 2.5  # standing still after 50 s
     k = rerun_log.path_samples(t, xy)
     assert k[0] == 0 and k[-1] == len(t) - 1

@@ -100,4 +100,51 @@ def test_single_settings_are_checked():
         RelocalizerConfig(single_max_false_alarm=0.0)
     with pytest.raises(RelocalizerError, match="single_gate_chi2"):
         RelocalizerConfig(single_gate_chi2=-1.0)
-    assert not RelocalizerConfig().single_landmark  # rocks: off
+    assert RelocalizerConfig().single_landmark  # every kind: the bound decides
+
+
+def _rock_scene(n_catalog: int, half_m: float, seed: int = 3):
+    """A rover 0.3 m off (drift) among 4 mapped rocks, one of them catalogued, in a yard of
+    ``n_catalog`` catalogued rocks of 0.5-1.5 m over (2 half_m)^2."""
+    rng = np.random.default_rng(seed)
+    rock = np.array([4.0, 2.0])
+    others = rng.uniform(-half_m, half_m, (n_catalog - 1, 2))
+    others = others[np.linalg.norm(others - rock, axis=1) > 2.0]
+    cat = RockCatalog(np.vstack([rock, others]), np.concatenate([[0.9], rng.uniform(0.5, 1.5, len(others))]),
+                      np.ones(len(others) + 1))
+    drift = np.array([0.3, -0.2])
+    T = np.eye(4)
+    T[:2, 3] = drift
+    est = PoseEstimate(50.0, T, np.diag([0.2**2, 0.2**2, 0.01, 1e-4, 1e-4, 1e-4]))
+    # the catalogued rock and three the catalog missed, mapped through the drift
+    xy = np.vstack([rock, [[-3.0, 5.0], [6.0, -4.0], [-5.0, -5.5]]]) + drift
+    cov = np.tile(np.eye(3) * 0.1**2, (4, 1, 1))
+    cov[:, :2, :2] += est.cov[:2, :2]
+    lmap = LandmarkMap(np.arange(4), np.column_stack([xy, np.zeros(4)]), cov, np.array([0.9, 0.6, 0.7, 0.8]),
+                       np.full(4, 5), "rocks")
+    return cat, est, lmap, drift
+
+
+def test_one_rock_of_a_sparse_catalog_fixes_the_position_by_default():
+    """A yard as sparse as ERC MY2021's (23 catalogued rocks over 47 x 47 m): too few mapped rocks
+    are catalogued to match a constellation, and the one that is fixes the rover's position."""
+    from fgslam.relocalizer import Relocalizer
+
+    cat, est, lmap, drift = _rock_scene(23, 23.5)
+    cfg = RelocalizerConfig(min_new_observations=0, min_travel_m=0.0, min_turn_deg=0.0)
+    att = Relocalizer(cat, cfg).attempt({"rocks": lmap}, est)
+    assert att.status == "fix" and att.single and att.source == "rocks"
+    assert np.allclose([att.fix.x_m, att.fix.y_m], est.position_m[:2] - drift, atol=1e-9)
+    assert att.false_alarm <= cfg.single_max_false_alarm
+    assert np.allclose(att.world_xy, [cat.xy_m[0]])
+
+
+def test_one_rock_of_a_dense_catalog_is_not_identified_alone():
+    """A kilometre world's rock field (a catalogued rock every ~4 m^2): a chance entry in the gate
+    is too likely, so the bound refuses and the rock gives no fix."""
+    from fgslam.relocalizer import Relocalizer
+
+    cat, est, lmap, _ = _rock_scene(2500, 50.0)
+    cfg = RelocalizerConfig(min_new_observations=0, min_travel_m=0.0, min_turn_deg=0.0)
+    att = Relocalizer(cat, cfg).attempt({"rocks": lmap}, est)
+    assert att.status == "too few landmarks" and not att.single

@@ -1,6 +1,6 @@
 """Rerun logging of the crater kind: catalog and mapped craters as rim circles of their diameter
 (a crater is a ring on the ground, not a disc), the mapped rim centres with their 3-sigma x/y
-ellipses as for every point landmark (:class:`fgslam.viz.landmarks.PointLandmarkLogger`)."""
+discs as for every point landmark (:class:`fgslam.viz.landmarks.PointLandmarkLogger`)."""
 
 from __future__ import annotations
 

@@ -4,10 +4,11 @@ Everything is drawn as a flat map in 3D views (x/y world metres, z = a layer hei
 orbital image can be a textured quad under the catalog, the truth and the estimates. Per world
 ``W`` and variant key ``K`` ("ekf", "ekf_reloc", "isam2", "isam2_reloc"):
 
-- ``/W/map/orbital``, ``/W/map/catalog/KIND`` (each landmark kind's catalog), ``/W/map/truth``
-  (static), ``/W/map/truth_pose`` (timeline);
+- ``/W/map/orbital/X_Y`` (tiles of the orbital image along the path, :mod:`fgslam.viz.orbital_tiles`),
+  ``/W/map/catalog/KIND`` (each landmark kind's catalog, on the same ground), ``/W/map/truth`` (static), ``/W/map/truth_pose`` (timeline);
 - ``/W/K/path`` (final trajectory, static), ``/W/K/pose``, ``/W/K/heading`` and ``/W/K/pose_cov``
-  (online estimate, an arrow along its heading, and its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks/KIND`` (each kind's final map, static),
+  (online estimate, an arrow along its heading, and its 3-sigma x/y ellipse, timeline), ``/W/K/landmarks/KIND`` (each kind's final map, static:
+  3-sigma discs by default),
   ``/W/K/fixes`` (fix events at t_recv, green accepted / red rejected);
 - ``/W/matches`` (matched local->catalog rock pairs at t_meas);
 - ``/W/errors/position/K`` and ``.../K_3sigma``, ``/W/errors/yaw/K`` and ``.../K_3sigma`` (scalars).
@@ -27,20 +28,22 @@ that viewers connect to) or any gRPC URL (``rerun+http://HOST:PORT/proxy``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fgslam import metrics as M
+from fgslam.viz.orbital_tiles import map_tiles
 
 TIMELINE = "sim_time"
 APP_ID = "fgslam"
 # layer heights of the flat map (m)
 Z_IMAGE, Z_CATALOG, Z_LANDMARKS, Z_TRUTH, Z_PATH, Z_FIX = 0.0, 0.02, 0.04, 0.06, 0.08, 0.1
-MAX_IMAGE_PX = 1024
 # downsampling, so a recording grows linearly with the path (< 5 MB per km): time series one
-# sample per RRD_STEP_M of path (and at least every RRD_STEP_S), matched pairs one fix per RRD_MATCH_STEP_M
-RRD_STEP_M, RRD_STEP_S, RRD_MATCH_STEP_M = 0.5, 10.0, 5.0
+# sample per RRD_STEP_M of path (and at least every RRD_STEP_S), matched pairs one fix per
+# RRD_MATCH_STEP_M; the orbital image and the catalogs as fgslam.viz.orbital_tiles cuts them
+RRD_STEP_M, RRD_STEP_S, RRD_MATCH_STEP_M = 1.0, 10.0, 5.0
 
 ENT_ORBITAL = "map/orbital"
 ENT_CATALOG = "map/catalog"
@@ -72,9 +75,29 @@ def landmark_logger(kind: str):
     return (k.layer("rerun") if k.has("rerun") else PointLandmarkLogger)(kind)
 
 
-def _downsample(img: np.ndarray) -> np.ndarray:
-    step = int(np.ceil(max(img.shape[:2]) / MAX_IMAGE_PX))
-    return np.ascontiguousarray(img[::step, ::step]) if step > 1 else img
+def _shown_path(gt, runs: dict) -> np.ndarray | None:
+    """The path a recording's map is cut around (:mod:`fgslam.viz.orbital_tiles`): the truth's,
+    else every run's final path; None (the whole map) for a live run without truth."""
+    if gt is not None and len(gt):
+        return gt.positions_m[path_samples(gt.t, gt.positions_m, step_s=np.inf), :2]
+    paths = [r.final.positions_m[:, :2] for r in runs.values() if len(r.final)]
+    return np.vstack(paths) if paths else None
+
+
+@dataclass(frozen=True)
+class ShownCatalog:
+    """The catalog entries a recording shows (what a kind's ``log_catalog`` reads)."""
+
+    xy_m: np.ndarray
+    size_m: np.ndarray
+
+
+def _shown_catalog(cat, view):
+    """``cat``'s entries on the ground ``view`` (:class:`MapTiles`) shows; all without a view."""
+    if view is None:
+        return cat
+    keep = view.covers(cat.xy_m)
+    return ShownCatalog(np.asarray(cat.xy_m, dtype=float)[keep], np.asarray(cat.size_m, dtype=float)[keep])
 
 
 def path_samples(t: np.ndarray, xy: np.ndarray, step_m: float = RRD_STEP_M, step_s: float = RRD_STEP_S) -> np.ndarray:
@@ -125,17 +148,20 @@ def log_world(rec, world: str, inputs, gt, runs: dict, attempts: list) -> None:
     def p(*parts: str) -> str:
         return "/".join((world,) + parts)
 
+    view = None
     if inputs.orbital_image is not None and inputs.orbital_extent is not None:
-        x0, x1, y0, y1 = inputs.orbital_extent
-        rec.log(p(ENT_ORBITAL), rr.Mesh3D(
-            vertex_positions=[[x0, y1, Z_IMAGE], [x1, y1, Z_IMAGE], [x1, y0, Z_IMAGE], [x0, y0, Z_IMAGE]],
-            triangle_indices=[[0, 1, 2], [0, 2, 3]],
-            vertex_normals=[[0, 0, 1]] * 4,
-            vertex_texcoords=[[0, 0], [1, 0], [1, 1], [0, 1]],
-            albedo_texture=_downsample(np.asarray(inputs.orbital_image)[:, :, :3]),
-        ), static=True)
+        view = map_tiles(inputs.orbital_image, inputs.orbital_extent, _shown_path(gt, runs))
+        for tile in view.tiles:
+            x0, x1, y0, y1 = tile.extent
+            rec.log(p(ENT_ORBITAL, f"{x0:.0f}_{y1:.0f}"), rr.Mesh3D(
+                vertex_positions=[[x0, y1, Z_IMAGE], [x1, y1, Z_IMAGE], [x1, y0, Z_IMAGE], [x0, y0, Z_IMAGE]],
+                triangle_indices=[[0, 1, 2], [0, 2, 3]],
+                vertex_normals=[[0, 0, 1]] * 4,
+                vertex_texcoords=[[0, 0], [1, 0], [1, 1], [0, 1]],
+                albedo_texture=tile.image,
+            ), static=True)
     for kind, cat in inputs.catalogs.items():
-        landmark_logger(kind).log_catalog(rec, p(ENT_CATALOG, kind), cat)
+        landmark_logger(kind).log_catalog(rec, p(ENT_CATALOG, kind), _shown_catalog(cat, view))
     if gt is not None:
         k = path_samples(gt.t, gt.positions_m, step_s=np.inf)
         rec.log(p(ENT_TRUTH), rr.LineStrips3D([flat(gt.positions_m[k, :2], Z_TRUTH)], colors=COLORS["truth"],
