@@ -9,8 +9,10 @@
         simulated against model size-frequency of craters (every crater of the world) and rocks
         (the tiles along the route), one PNG per directory
     python -m sim.tiled.bench drift SIMDIR RUNDIR [RUNDIR ...]
-        final and maximum horizontal error of ``fgslam run`` outputs (trajectory.tum) against the
-        bag's ground truth, as metres and % of the distance driven
+        the drift table of ``fgslam run`` outputs (their ``<variant>.tum`` and metrics.json)
+        against the bag's own ground truth: distance, final and maximum horizontal error (m, and
+        the final as % of the distance driven), ATE, position NEES with its two-sided interval,
+        real-time factor, update p99 and peak RSS
 """
 
 from __future__ import annotations
@@ -148,22 +150,54 @@ def _ground_truth_xy(bag: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(t), np.array(xy)
 
 
-def drift(sim_dir: Path, runs: list[Path]) -> None:
+def _run_track(run_dir: Path) -> np.ndarray:
+    """The (N, 8) TUM rows of the one ``<variant>.tum`` an ``fgslam run`` directory holds."""
+    tums = [p for p in sorted(Path(run_dir).glob("*.tum")) if p.name != "ground_truth.tum"]
+    if len(tums) != 1:
+        raise SystemExit(f"{run_dir}: expected one <variant>.tum beside ground_truth.tum, found "
+                         f"{[p.name for p in tums] or 'none'}")
+    return np.loadtxt(tums[0], ndmin=2)
+
+
+def drift_rows(sim_dir: Path, runs: list[Path]) -> list[dict]:
+    """Per run directory: its variant, the distance driven to its last pose, the final and
+    maximum horizontal error against the bag's ground truth (interpolated at the run's poses),
+    and figures from its metrics.json."""
     import json
 
     t_gt, xy_gt = _ground_truth_xy(Path(sim_dir) / "bag")
     dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy_gt, axis=0), axis=1))])
-    print("| run | backend | ATE (m) | final error (m) | final / distance (%) | max error (m) | wall (s) | x real time |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    rows = []
     for r in runs:
-        est = np.loadtxt(Path(r) / "trajectory.tum")
+        est = _run_track(r)
         m = json.loads((Path(r) / "metrics.json").read_text())
+        inside = (est[:, 0] >= t_gt[0]) & (est[:, 0] <= t_gt[-1])
+        est = est[inside]
         gt = np.column_stack([np.interp(est[:, 0], t_gt, xy_gt[:, k]) for k in range(2)])
         err = np.linalg.norm(est[:, 1:3] - gt, axis=1)
         d_end = float(np.interp(est[-1, 0], t_gt, dist))
-        rt = m["runtime"]
-        print(f"| {Path(r).name} | {m['backend']} | {m['ate']['rmse']:.2f} | {err[-1]:.2f} | {100 * err[-1] / d_end:.2f} "
-              f"| {err.max():.2f} | {rt['wall_s']:.0f} | {rt['real_time_factor']:.1f} |")
+        pos = m.get("consistency", {}).get("position", {})
+        rows.append({
+            "run": Path(r).name, "backend": m["backend"], "distance_m": d_end, "final_error_m": float(err[-1]),
+            "drift_pct": 100.0 * float(err[-1]) / d_end, "max_error_m": float(err.max()),
+            "ate_m": m["ate"]["rmse"], "nees_xy": pos.get("mean"), "nees_interval": pos.get("interval"),
+            "nees_verdict": pos.get("verdict"), "real_time_factor": m["runtime"]["real_time_factor"],
+            "update_p99_ms": m["runtime"].get("update_p99_ms"),
+            "peak_rss_mb": max((row["peak_rss_mb"] for row in m.get("memory", [])), default=float("nan")),
+        })
+    return rows
+
+
+def drift(sim_dir: Path, runs: list[Path]) -> None:
+    print("| run | back-end | distance | final error m (% of distance) | max error m | ATE RMSE m | "
+          "NEES(x,y) [95 %] | x real time | update p99 ms | peak RSS MB |")
+    print("|---|---|---:|---:|---:|---:|---|---:|---:|---:|")
+    for r in drift_rows(sim_dir, runs):
+        lo, hi = r["nees_interval"] or (float("nan"), float("nan"))
+        nees = f"{r['nees_xy']:.2f} [{lo:.2f}, {hi:.2f}] {r['nees_verdict']}" if r["nees_xy"] is not None else "-"
+        print(f"| {r['run']} | {r['backend']} | {r['distance_m'] / 1000:.2f} km | {r['final_error_m']:.2f} "
+              f"({r['drift_pct']:.2f} %) | {r['max_error_m']:.2f} | {r['ate_m']:.2f} | {nees} | "
+              f"{r['real_time_factor']:.1f} | {r['update_p99_ms'] or float('nan'):.1f} | {r['peak_rss_mb']:.0f} |")
 
 
 def main(argv: list[str] | None = None) -> int:

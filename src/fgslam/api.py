@@ -59,14 +59,13 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
     from fgslam.backends.registry import backend_config_dict, make_backend
     from fgslam.compare import relocalizer_set, run_key, run_metrics
     from fgslam.fix_sources import NoFixes, OnlineFixes
-    from fgslam.inputs import check_stream, truth_of
-    from fgslam.long_traverse import backend_overrides_for, run_span_s
+    from fgslam.inputs import check_stream
+    from fgslam.long_traverse import backend_overrides_for, evaluation_truth, runner_config_for
     from fgslam.runner import run_backend
     from reloc.config import config_to_dict
 
-    runner_cfg = check_stream(inputs, cfg.runner)
-    gt = truth_of(inputs)
-    span = run_span_s(gt, inputs.measurements)
+    gt, span = evaluation_truth(inputs, cfg.long_traverse)
+    runner_cfg = runner_config_for(check_stream(inputs, cfg.runner), span, cfg.long_traverse)
     be = make_backend(backend, inputs.initial,  # bounded back-ends on a long traverse (fgslam.long_traverse)
                       backend_overrides_for(backend, cfg.backend_overrides.get(backend), span, cfg.long_traverse))
     relocs = relocalizer_set(inputs, cfg) if reloc else []
@@ -74,7 +73,8 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
     key = run_key(backend, reloc)
     observer = live(key, gt) if live is not None else None
     res = run_backend(be, inputs.measurements, fixes, config=runner_cfg,
-                      on_progress=on_progress(key) if on_progress is not None else None, observer=observer)
+                      on_progress=on_progress(key) if on_progress is not None else None, observer=observer,
+                      keep_truth=False)
     if observer is not None and hasattr(observer, "finish"):
         observer.finish(res)
     met = run_metrics(res, gt, res.attempts, cfg.rpe_delta_m)

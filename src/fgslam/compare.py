@@ -20,13 +20,15 @@ import numpy as np
 from fgslam import metrics as M
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
-from fgslam.inputs import RunInputs, truth_of
+from fgslam.inputs import RunInputs
 from fgslam.io.image_rocks import ImageInputConfig
 from fgslam.long_traverse import (
     LongTraverseConfig,
     backend_overrides_for,
     check_window,
-    stream_span_s,
+    evaluation_truth,
+    is_long,
+    runner_config_for,
 )
 from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
@@ -211,11 +213,10 @@ def compare_world(
     if cfg.reference_backend not in cfg.backends:
         raise CompareError(f"reference_backend {cfg.reference_backend!r} is not among {cfg.backends}")
     wall0 = time.perf_counter()
-    gt = truth_of(inputs)
+    gt, span = evaluation_truth(inputs, cfg.long_traverse)
 
     relocs = relocalizers if relocalizers is not None else relocalizer_set(inputs, cfg)
     ref_key = run_key(cfg.reference_backend, True)
-    span = gt.t[-1] - gt.t[0] if gt is not None and len(gt) else stream_span_s(inputs.measurements)
     overrides = {name: backend_overrides_for(name, cfg.backend_overrides.get(name), span, cfg.long_traverse)
                  for name in cfg.backends}
     passes = [Pass(DR_KEY, "dr", DR_OVERRIDES, "none", "dead reckoning")]
@@ -225,7 +226,8 @@ def compare_world(
             mode = "online" if key == ref_key else ("replay" if with_reloc else "none")
             label = run_label(key) + (" (reference)" if mode == "online" else "")
             passes.append(Pass(key, name, overrides[name], mode, label))
-    runs = run_passes(inputs, passes, cfg.runner, relocs, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
+    runner = runner_config_for(cfg.runner, span, cfg.long_traverse)
+    runs = run_passes(inputs, passes, runner, relocs, lambda r: fixes_of(r.attempts), cfg.workers, on_progress)
     dr = runs.pop(DR_KEY)
     attempts = runs[ref_key].attempts
     ordered = {run_key(n, r): runs[run_key(n, r)] for n in cfg.backends for r in (False, True)}
@@ -242,8 +244,9 @@ def compare_world(
         "real_time_factor": M.real_time_factor(duration, wall),
         "matcher_build_s": sum(r.build_time_s for r in relocs),
         "reference_backend": cfg.reference_backend,
-        "long_traverse": bool(span > cfg.long_traverse.min_duration_s),
+        "long_traverse": is_long(span, cfg.long_traverse),
         "backend_overrides": overrides,
+        "record_rate_hz": runner.record_rate_hz,  # the runner's, as the long traverse left it
         "runs": met,
     }
     if gt is not None:

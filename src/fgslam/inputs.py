@@ -297,13 +297,14 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
     )
 
 
-def truth_of(inputs: RunInputs) -> Trajectory | None:
-    """Ground-truth trajectory of the inputs (None without /ground_truth)."""
+def truth_of(inputs: RunInputs, min_period_s: float = 0.0) -> Trajectory | None:
+    """Ground-truth trajectory of the inputs (None without /ground_truth); with ``min_period_s``
+    > 0, one pose per that period at most (:func:`fgslam.runner.ground_truth_trajectory`)."""
     from fgslam.runner import ground_truth_trajectory
 
     ground_truth = getattr(inputs.measurements, "ground_truth", None)  # a stream reads just that topic
     poses = ground_truth() if ground_truth is not None else (m for m in inputs.measurements if isinstance(m, GroundTruthPose))
-    return ground_truth_trajectory(poses)
+    return ground_truth_trajectory(poses, min_period_s)
 
 
 def stream_span_s(inputs: RunInputs) -> tuple[float, float]:
@@ -322,15 +323,43 @@ def stream_size(inputs: RunInputs) -> str:
     return f"{len(inputs.measurements)} measurements"
 
 
-def _motion_stamps(measurements) -> dict[type, list[float]]:
-    """Stamps of the commands, wheel odometry and IMU samples, in one pass (a bag stream reads only
-    those topics)."""
+class _Stamps:
+    """One motion input's stamps in one pass, in constant memory (a 24-hour bag holds millions):
+    count, first and last, the largest gap and where it starts, and the time by which gaps exceed
+    ``max_age_s``."""
+
+    def __init__(self, max_age_s: float) -> None:
+        self.max_age_s = max_age_s
+        self.n, self.first, self.last = 0, float("nan"), float("nan")
+        self.gap, self.gap_at, self.beyond_age_s = 0.0, float("nan"), 0.0
+
+    def push(self, t: float) -> None:
+        if self.n:
+            d = t - self.last
+            if d > self.gap:
+                self.gap, self.gap_at = d, self.last
+            if d > self.max_age_s:
+                self.beyond_age_s += d - self.max_age_s
+        else:
+            self.first = t
+        self.last = t
+        self.n += 1
+
+    def silent_s(self, t0: float, t1: float) -> float:
+        """Time in [t0, t1] (s) with no stamp younger than ``max_age_s`` (before the first stamp,
+        in the gaps, after the last)."""
+        return self.beyond_age_s + max(self.first - t0, 0.0) + max(t1 - self.last - self.max_age_s, 0.0)
+
+
+def _motion_stamps(measurements, max_age_s: float) -> dict[type, _Stamps]:
+    """The stamps of the commands, wheel odometry and IMU samples, in one pass (a bag stream reads
+    only those topics)."""
     only = getattr(measurements, "motion_only", None)
-    out: dict[type, list[float]] = {CmdVel: [], WheelOdometry: [], ImuSample: []}
+    out = {CmdVel: _Stamps(max_age_s), WheelOdometry: _Stamps(max_age_s), ImuSample: _Stamps(max_age_s)}
     for m in (only() if only is not None else measurements):
         kind = out.get(type(m))
         if kind is not None:
-            kind.append(m.t)
+            kind.push(m.t)
     return out
 
 
@@ -342,8 +371,8 @@ def check_stream(inputs: RunInputs, runner):
     import dataclasses
 
     where = inputs.source.get("bag") or inputs.name
-    stamps = _motion_stamps(inputs.measurements)
-    n = {"cmd": len(stamps[CmdVel]), "wheel": len(stamps[WheelOdometry])}
+    stamps = _motion_stamps(inputs.measurements, runner.max_speed_age_s)
+    n = {"cmd": stamps[CmdVel].n, "wheel": stamps[WheelOdometry].n}
     names = inputs.source.get("topics") or {}
     topic = {"cmd": names.get("cmd_vel", "/cmd_vel"), "wheel": names.get("wheel_odom", "/wheel_odom")}
     want = runner.speed_source
@@ -356,24 +385,19 @@ def check_stream(inputs: RunInputs, runner):
                     where, topic[want], topic[other], other)
         runner = dataclasses.replace(runner, speed_source=other)
         inputs.source["speed_source"] = other  # recorded with the results
-    t_imu = np.array(stamps[ImuSample])
-    t_speed = np.array(stamps[CmdVel if runner.speed_source == "cmd" else WheelOdometry])
-    if len(t_imu) >= 2 and len(t_speed):  # where the speed input is older than it may be, nothing moves
-        edges = np.concatenate([t_speed, [t_imu[-1]]])
-        silent = float(np.sum(np.clip(np.diff(edges) - runner.max_speed_age_s, 0.0, None)))
-        silent += max(float(t_speed[0] - t_imu[0]), 0.0)
-        if silent > 0.05 * (t_imu[-1] - t_imu[0]):
+    imu = stamps[ImuSample]
+    speed = stamps[CmdVel if runner.speed_source == "cmd" else WheelOdometry]
+    if imu.n >= 2 and speed.n:  # where the speed input is older than it may be, nothing moves
+        silent = speed.silent_s(imu.first, imu.last)
+        if silent > 0.05 * (imu.last - imu.first):
             log.warning("%s: %s is silent for %.1f s of the %.1f s stream (gaps over runner.max_speed_age_s = %g s): "
                         "the rover is taken as stopped there; raise it if this recorder publishes speeds only "
-                        "when they change", where, topic[runner.speed_source], silent, t_imu[-1] - t_imu[0],
+                        "when they change", where, topic[runner.speed_source], silent, imu.last - imu.first,
                         runner.max_speed_age_s)
-    if len(t_imu) >= 2:
-        gaps = np.diff(t_imu)
-        k = int(np.argmax(gaps))
-        if gaps[k] > runner.max_imu_gap_s:
-            raise InputFileError(
-                f"{where}: the IMU stream has a gap of {gaps[k]:.3f} s at t = {t_imu[k]:.3f} s, more than "
-                f"runner.max_imu_gap_s = {runner.max_imu_gap_s:g} s; to bridge it, raise runner.max_imu_gap_s "
-                f"in the --config file (the rover is taken as stopped where its speed input is older than "
-                f"runner.max_speed_age_s = {runner.max_speed_age_s:g} s)")
+    if imu.n >= 2 and imu.gap > runner.max_imu_gap_s:
+        raise InputFileError(
+            f"{where}: the IMU stream has a gap of {imu.gap:.3f} s at t = {imu.gap_at:.3f} s, more than "
+            f"runner.max_imu_gap_s = {runner.max_imu_gap_s:g} s; to bridge it, raise runner.max_imu_gap_s "
+            f"in the --config file (the rover is taken as stopped where its speed input is older than "
+            f"runner.max_speed_age_s = {runner.max_speed_age_s:g} s)")
     return runner

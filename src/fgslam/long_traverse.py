@@ -17,10 +17,14 @@ An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` 
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Literal
 
 from fgslam.errors import FgslamError
+from fgslam.runner import RunnerConfig
+from reloc.backend import Trajectory
 from reloc.config import NonNegative, Positive, checked
 
 
@@ -51,10 +55,16 @@ class LongTraverseConfig:
     # slots), with fixes, 0.237 -> 0.187 m ATE (without: 0.629 -> 0.469); on the dense my2020 yard
     # the swap to the nearest rocks is worth more (0.027 m against 0.048 with it)
     ekf_keep_seen_s: NonNegative = 2.0
-    # the EKF's pose history (its final trajectory) at most this often: every step is 30 Hz, and
-    # 30 Hz of poses with covariance (424 B each) is ~105 kB per metre of a 0.12 m/s traverse;
-    # 0.1 s is the rate the runner records the online estimate at
-    ekf_trajectory_period_s: Positive = 0.1
+    # What a long traverse keeps for its evaluation: a pose with its covariance is a 424-B row, so
+    # 10 Hz over a 0.12 m/s traverse is ~35 kB per metre for each of the runner's online record
+    # and the EKF's pose history, and the 30 Hz ground truth as a trajectory ~32 kB: together
+    # 0.9 GB over 10 km, the whole growth of `fgslam run`'s memory with distance. The rover
+    # moves ~0.1 m a second, its error changes over metres, and iSAM2 keeps one keyframe a
+    # second (KeyframeConfig.interval_s): one pose a second is the resolution of the estimates,
+    # and 10 Hz of truth interpolates to well under a millimetre at that speed.
+    record_rate_hz: Positive = 1.0  # the runner's online estimate at most this often (RunnerConfig.record_rate_hz)
+    ekf_trajectory_period_s: Positive = 1.0  # the EKF's pose history (its final trajectory) at most this often
+    truth_rate_hz: Positive = 10.0  # the ground truth kept for the evaluation at most this often
 
 
 def stream_span_s(measurements) -> float:
@@ -79,6 +89,33 @@ def run_span_s(truth, measurements, duration_s: float | None = None) -> float:
     return stream_span_s(measurements)
 
 
+def is_long(duration_s: float, cfg: LongTraverseConfig) -> bool:
+    """Whether a stream of ``duration_s`` is a long traverse (an unknown span is not)."""
+    return bool(duration_s > cfg.min_duration_s)
+
+
+def runner_config_for(runner: RunnerConfig, duration_s: float, cfg: LongTraverseConfig) -> RunnerConfig:
+    """The runner's config on a stream of ``duration_s``: on a long traverse the online estimate is
+    recorded at most at ``cfg.record_rate_hz`` (a lower rate in ``runner`` stands)."""
+    if not is_long(duration_s, cfg) or runner.record_rate_hz <= cfg.record_rate_hz:
+        return runner
+    return dataclasses.replace(runner, record_rate_hz=cfg.record_rate_hz)
+
+
+def evaluation_truth(inputs, cfg: LongTraverseConfig) -> tuple[Trajectory | None, float]:
+    """The ground truth to evaluate runs over ``inputs`` with, and the span (s) that decides
+    whether they are a long traverse: the stream's span when it is known without reading it (a
+    bag's), so that a long traverse's truth is read at ``cfg.truth_rate_hz`` from the start,
+    else the truth's span (:func:`run_span_s`)."""
+    from fgslam.inputs import truth_of
+
+    span = stream_span_s(inputs.measurements)
+    if math.isfinite(span):
+        return truth_of(inputs, 1.0 / cfg.truth_rate_hz if is_long(span, cfg) else 0.0), span
+    gt = truth_of(inputs)
+    return gt, run_span_s(gt, inputs.measurements)
+
+
 def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: float) -> None:
     """Raise LongTraverseError unless the window holds a fix ``worst_latency_s`` late with
     ``margin_s`` to spare (the smoother's ``fixes.window_margin_s``)."""
@@ -97,7 +134,7 @@ def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
                 "ekf": {"forget_distance_m": cfg.ekf_forget_distance_m,
                         "trajectory_period_s": cfg.ekf_trajectory_period_s,
                         "keep_seen_s": cfg.ekf_keep_seen_s}}.get(name)
-    if defaults is None or not duration_s > cfg.min_duration_s:
+    if defaults is None or not is_long(duration_s, cfg):
         return overrides
     add = {k: v for k, v in defaults.items() if not (overrides and k in overrides)}
     return {**(overrides or {}), **add} if add else overrides

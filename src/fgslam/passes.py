@@ -106,7 +106,7 @@ def _execute(state: dict, p: Pass, fixes, on_progress, fix_feed=None, fix_sink=N
     inputs = state["inputs"]
     be = make_backend(p.backend, inputs.initial, p.overrides)
     return run_backend(be, inputs.measurements, _source(state, p, fixes, fix_feed, fix_sink),
-                       config=state["runner"], on_progress=on_progress)
+                       config=state["runner"], on_progress=on_progress, keep_truth=False)  # the caller has it
 
 
 def _worker(p: Pass, fixes) -> tuple[str, RunResult]:

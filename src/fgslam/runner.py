@@ -105,12 +105,21 @@ class RunResult:
         return sum(len(m) for m in self.landmarks.values())
 
 
-def ground_truth_trajectory(poses: Iterable[GroundTruthPose]) -> Trajectory | None:
+def ground_truth_trajectory(poses: Iterable[GroundTruthPose], min_period_s: float = 0.0) -> Trajectory | None:
     """Stack ground-truth messages (any iterable, consumed once) into a Trajectory (None when
-    there are none)."""
+    there are none). With ``min_period_s`` > 0 a pose is kept only that long after the last kept
+    one (the last pose always), for evaluating a long traverse (:mod:`fgslam.long_traverse`)."""
     rows = RowBuffer(8)
+    t_kept, last = -np.inf, None
     for g in poses:
-        rows.append((g.t, *g.position_m, *g.quat_xyzw))
+        row = (g.t, *g.position_m, *g.quat_xyzw)
+        if g.t - t_kept >= min_period_s - 1e-6:  # stamps at 30 Hz are not exact multiples
+            rows.append(row)
+            t_kept, last = g.t, None
+        else:
+            last = row
+    if last is not None:
+        rows.append(last)
     return truth_from_rows(rows.array())
 
 
@@ -138,8 +147,9 @@ class RunRecorder:
     ground truth, the stream's span, and progress reports."""
 
     def __init__(self, rate_hz: float, on_progress: Callable[[float], None] | None, rss_every_m: float = 500.0,
-                 observer: RunObserver | None = None) -> None:
+                 observer: RunObserver | None = None, keep_truth: bool = True) -> None:
         self.dt = 1.0 / rate_hz
+        self.keep_truth = keep_truth
         self.on_progress = on_progress
         self.observer = observer
         self.t_first = self.t_last = None
@@ -157,7 +167,8 @@ class RunRecorder:
         self.t_last = t
 
     def saw_truth(self, g: GroundTruthPose) -> None:
-        self.truth.append((g.t, *g.position_m, *g.quat_xyzw))
+        if self.keep_truth:
+            self.truth.append((g.t, *g.position_m, *g.quat_xyzw))
 
     def predicted(self, t: float, backend: Backend) -> None:
         self.n_predict += 1
@@ -219,22 +230,26 @@ def run_backend(
     on_progress: Callable[[float], None] | None = None,
     time_cpu: bool = False,
     observer: RunObserver | None = None,
+    keep_truth: bool = True,
 ) -> RunResult:
     """Run ``backend`` over ``measurements`` (time-ordered, consumed lazily) with fixes from
     ``fixes`` (:mod:`fgslam.fix_sources`; default none); ``time_cpu`` also measures the CPU time
     of the back-end's calls (``RunResult.backend_cpu_s``, benchmarks); ``observer`` is told of
-    each recorded estimate and fix outcome as the run goes (a live viewer)."""
+    each recorded estimate and fix outcome as the run goes (a live viewer). ``keep_truth=False``:
+    the caller holds the ground truth already (``RunResult.ground_truth`` is then None; a
+    24-hour traverse's 30 Hz truth is ~170 MB of rows, and a forked pass would send it back)."""
     cfg = config or RunnerConfig()
     with blas_limit(cfg.blas_threads):
-        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, on_progress, observer)
+        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, on_progress, observer,
+                    keep_truth)
 
 
 def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress,
-         observer: RunObserver | None = None) -> RunResult:
+         observer: RunObserver | None = None, keep_truth: bool = True) -> RunResult:
     odometry = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
                                  max_speed_age_s=cfg.max_speed_age_s)
     slip = SlipMonitor(cfg.slip)
-    rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m, observer)
+    rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m, observer, keep_truth)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
     wall0, cpu0 = time.perf_counter(), time.process_time()

@@ -29,7 +29,7 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     consider = LongTraverseConfig(isam2_calibration_mode="consider")
     assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
     assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
-                                                                 "trajectory_period_s": 0.1, "keep_seen_s": 2.0}
+                                                                 "trajectory_period_s": 1.0, "keep_seen_s": 2.0}
     assert backend_overrides_for("ekf", {"trajectory_period_s": 0.0}, 3600.0, cfg) == {
         "trajectory_period_s": 0.0, "forget_distance_m": 40.0, "keep_seen_s": 2.0}
     assert backend_overrides_for("ekf", over, 1000.0, cfg) is over
@@ -74,3 +74,40 @@ def test_corrupted_fixes_are_the_asked_share_moved_5_to_50_m():
     d = np.array([np.hypot(a.x_m - b.x_m, a.y_m - b.y_m) for a, b in zip(out, fixes)])
     assert np.all(d[~wrong] == 0.0) and np.all((d[wrong] >= 5.0) & (d[wrong] <= 50.0))
     assert np.array_equal(corrupt_fixes(fixes, 0.2, seed=3)[1], wrong)
+
+
+def test_a_long_traverse_keeps_a_pose_a_second_and_the_truth_at_10_hz():
+    """What a long traverse keeps for its evaluation (the growth of `fgslam run`'s memory with
+    distance): the online record and the EKF's history at 1 Hz, the truth read at 10 Hz with its
+    last pose, no second copy of the truth in the runner; the same stream as a yard keeps every
+    pose, and the two evaluations agree (one pose a second resolves the error)."""
+    from fgslam.api import run_one
+    from tests.fgslam._synth_stream import make_stream
+
+    inputs = make_stream(seed=3, duration_s=60.0)
+    yard = run_one(inputs, "ekf", False, CompareConfig())
+    long = run_one(inputs, "ekf", False, CompareConfig(long_traverse=LongTraverseConfig(min_duration_s=30.0)))
+    truth_t = np.array([m.t for m in inputs.measurements if type(m).__name__ == "GroundTruthPose"])
+
+    assert np.median(np.diff(yard.result.online.t)) == pytest.approx(0.1, abs=1e-6)
+    assert np.median(np.diff(long.result.online.t)) == pytest.approx(1.0, abs=0.04)  # 30 Hz steps
+    assert np.median(np.diff(long.result.final.t)) == pytest.approx(1.0, abs=0.04)
+    assert len(yard.gt) == len(truth_t)
+    assert np.diff(long.gt.t[:-1]).min() >= 0.1 - 1e-6 and np.median(np.diff(long.gt.t)) < 0.11
+    assert long.gt.t[-1] == truth_t[-1] and long.gt.t[0] == truth_t[0]
+    assert yard.result.ground_truth is None and long.result.ground_truth is None  # the caller holds it
+    assert long.used["runner"]["record_rate_hz"] == 1.0  # the config saved is the one used
+    a, b = yard.metrics["ate"]["rmse"], long.metrics["ate"]["rmse"]
+    assert abs(a - b) < 0.1 * a, (a, b)
+
+
+def test_the_truth_kept_at_a_period_has_its_last_pose():
+    from fgslam.runner import ground_truth_trajectory
+    from reloc.measurements import GroundTruthPose
+
+    poses = [GroundTruthPose(0.05 * k, np.array([0.05 * k, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+             for k in range(23)]
+    gt = ground_truth_trajectory(poses, 0.2)
+    np.testing.assert_allclose(gt.t, [0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.1], atol=1e-12)
+    np.testing.assert_allclose(gt.positions_m[:, 0], gt.t, atol=1e-12)
+    assert len(ground_truth_trajectory(poses)) == 23
