@@ -62,6 +62,17 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 MARKERS_TYPE = "visualization_msgs/msg/MarkerArray"
 
+
+def ros2_msgtype(name: str) -> str:
+    """The ROS 2 form of a message type name, the form of the types above and of the typestore:
+    ``pkg/Type`` (the ROS 1 form, which rosbag2 accepts and some recorders write, e.g.
+    ``sensor_msgs/Image``) -> ``pkg/msg/Type``; any other name is returned unchanged. Every type
+    check and every deserialisation of a bag's messages goes through it."""
+    pkg, sep, typ = name.partition("/")
+    if sep and pkg and typ and "/" not in typ:
+        return f"{pkg}/msg/{typ}"
+    return name
+
 ROCK_CLASS_ID = "rock"
 WORLD_FRAME = "world"
 ODOM_FRAME = "odom"

@@ -16,6 +16,12 @@ one recorded; messages with NaN/inf or otherwise invalid content are dropped.
 Every such repair is counted in :class:`BagReport` and logged at WARNING. With
 ``repair=False`` each of them raises :class:`~fgslam.errors.BagError` instead.
 
+Other recorders' habits: ROS 1-style type names (``sensor_msgs/Image``) are read as their ROS 2
+form (:func:`reloc.bag_spec.ros2_msgtype`), and a message that cannot be decoded is a
+:class:`BagError` naming the bag, the topic and the cause (for a bag recorded with per-message
+compression given as its bare storage file: the hint to give its directory). Every reader of
+bags in :mod:`fgslam.io` opens them through :func:`_open` (an :class:`OpenBag`).
+
 The bag is streamed (:class:`BagSource`): a kilometre traverse is never held in memory, and
 :func:`read_bag` is the same stream collected into a list.
 """
@@ -49,6 +55,7 @@ from reloc.bag_spec import (
     DecodeContext,
     TopicNames,
     check_transform,
+    ros2_msgtype,
     typestore,
 )
 from reloc.kinds import UnknownKindError, kind_named, kinds_with
@@ -56,7 +63,10 @@ from reloc.measurements import Measurement
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BagReport", "BagSource", "BagStream", "TopicReport", "read_bag"]
+__all__ = ["BagReport", "BagSource", "BagStream", "OpenBag", "TopicReport", "read_bag"]
+
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"  # the first bytes of a zstd frame
+PROBE_MESSAGES = 2048  # messages read at most, when a source is made, to decode each topic's first one
 
 
 @dataclass(frozen=True)
@@ -95,13 +105,99 @@ def _resolve(path: Path) -> Path:
     )
 
 
-def _open(bag: Path, path: Path):
+def _compression_hint(raw, bare: bool) -> str:
+    """Why a message may not decode: rosbag2's per-message compression is recorded only in the
+    bag's metadata.yaml, so a bare storage file hands out zstd frames instead of CDR."""
+    directory = "give the bag as its directory, with metadata.yaml, not the bare .mcap/.db3 file"
+    if bytes(raw[:4]) == ZSTD_MAGIC:
+        if not bare:
+            return ("; the message is zstd-compressed (a zstd frame: it starts 28 b5 2f fd), yet metadata.yaml "
+                    "does not record per-message compression (compression_mode: message)")
+        return ("; the message is zstd-compressed (a zstd frame: it starts 28 b5 2f fd): the bag was recorded "
+                "with per-message compression (compression_mode: message), which only its metadata.yaml "
+                f"records; {directory}")
+    if bare:
+        return f"; if the bag was recorded with per-message compression (compression_mode: message), {directory}"
+    return ""
+
+
+class OpenBag:
+    """An open bag as fgslam reads it: rosbags' ``AnyReader`` (``reader``) with every message type
+    name in its ROS 2 form (:func:`reloc.bag_spec.ros2_msgtype`): in ``topics`` (a topic whose
+    connections differ only by the form of their type name has that one type) and in
+    :meth:`deserialize`. :meth:`decode` turns a message that cannot be decoded into a
+    :class:`BagError` naming the bag, the topic and the cause. ``connections`` and
+    :meth:`messages` are rosbags' own (the type names as recorded)."""
+
+    def __init__(self, reader, bag: Path, path: Path) -> None:
+        self.reader, self.bag, self.path = reader, bag, path
+        self.topics = {}
+        for topic, info in reader.topics.items():
+            types = {ros2_msgtype(c.msgtype) for c in info.connections}
+            self.topics[topic] = info._replace(msgtype=types.pop() if len(types) == 1 else None)
+
+    @property
+    def connections(self) -> list:
+        return self.reader.connections
+
+    @property
+    def start_time(self) -> int:
+        return self.reader.start_time
+
+    @property
+    def end_time(self) -> int:
+        return self.reader.end_time
+
+    def messages(self, *args, **kwargs):
+        """rosbags' ``AnyReader.messages``: (connection, log time ns, raw CDR bytes)."""
+        return self.reader.messages(*args, **kwargs)
+
+    def deserialize(self, raw, msgtype: str):
+        """One message of type ``msgtype`` (either form of the name); rosbags' errors pass through."""
+        return self.reader.deserialize(raw, ros2_msgtype(msgtype))
+
+    def decode(self, conn, raw):
+        """The message ``raw`` of connection ``conn``; one that cannot be decoded is a BagError."""
+        try:
+            return self.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # rosbags raises AnyReaderError, KeyError, struct/index errors, ...
+            raise BagError(
+                f"bag {self.path}: topic {conn.topic}: a message cannot be decoded "
+                f"({type(exc).__name__}: {exc}){_compression_hint(raw, self.bag.is_file())}"
+            ) from exc
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def _hashed_ros1_names(exc: Exception, bag: Path, path: Path) -> BagError | None:
+    """The error of a bag whose ROS 1-style type names come with RIHS01 type hashes: rosbags
+    (0.11) looks the hash up under the recorded name, which its typestore holds only in the ROS 2
+    form, and fails in ``AnyReader.open`` with a KeyError naming the type. None for other errors."""
+    name = exc.args[0] if isinstance(exc, KeyError) and exc.args else None
+    if not isinstance(name, str) or ros2_msgtype(name) == name:
+        return None
+    files = sorted(bag.glob("*.mcap")) + sorted(bag.glob("*.db3")) if bag.is_dir() else []
+    alone = (f", or read its storage file {files[0]} alone (not for a bag recorded with per-message "
+             "compression)" if len(files) == 1 else "")
+    return BagError(
+        f"bag {path} cannot be opened: its message type {name!r} has a ROS 1-style name (ROS 2: "
+        f"{ros2_msgtype(name)!r}) and a type hash (type_description_hash in metadata.yaml), which rosbags, "
+        "the library fgslam reads bags with, cannot match to the type; fgslam reads such names without "
+        f"hashes: remove the type_description_hash entries from metadata.yaml{alone}"
+    )
+
+
+def _open(bag: Path, path: Path) -> OpenBag:
+    """Open ``bag`` (resolved by :func:`_resolve` from ``path``, the path the user gave)."""
     from rosbags.highlevel import AnyReader
 
     try:
         reader = AnyReader([bag], default_typestore=typestore())
         reader.open()
     except Exception as exc:  # rosbags raises many kinds on garbage input; all mean "not readable"
+        if (named := _hashed_ros1_names(exc, bag, path)) is not None:
+            raise named from exc
         hint = ""
         if "end magic" in str(exc):
             hint = (
@@ -112,7 +208,7 @@ def _open(bag: Path, path: Path):
             f"bag {path} cannot be opened (not a valid or a truncated bag): "
             f"{type(exc).__name__}: {exc}{hint}"
         ) from exc
-    return reader
+    return OpenBag(reader, bag, path)
 
 
 def _check_topics(reader, roles: list[_Role], path: Path, require_landmarks: bool = True) -> dict[str, object]:
@@ -140,14 +236,38 @@ def _check_topics(reader, roles: list[_Role], path: Path, require_landmarks: boo
     for r in roles:
         if not present[r.name]:
             continue
-        msgtype = info[r.topic].msgtype
-        if msgtype not in r.msgtypes:
+        msgtype = info[r.topic].msgtype  # the ROS 2 form (OpenBag)
+        if msgtype not in {ros2_msgtype(t) for t in r.msgtypes}:
             raise BagError(
                 f"bag {path}: topic {r.topic} has type {msgtype or 'mixed'}, "
                 f"expected {' or '.join(r.msgtypes)}"
             )
         selected[r.topic] = info[r.topic].connections
     return selected
+
+
+def _probe(reader: OpenBag, topics: list[str]) -> None:
+    """Decode the first message of each of ``topics`` found among the bag's first
+    :data:`PROBE_MESSAGES` messages (one message per topic, once per source): a bag none of whose
+    messages can be decoded (per-message compression read from the bare file, a type the
+    definitions do not match) is refused here, naming the topic and the cause, before any pass.
+    A chunk that cannot be read ends the probe; the pass reports it, with its position."""
+    todo = set(topics)
+    conns = [c for t in topics for c in reader.topics[t].connections]
+    messages = reader.messages(connections=conns)
+    try:
+        for k, (conn, _, raw) in enumerate(messages):
+            if conn.topic in todo:
+                reader.decode(conn, raw)
+                todo.discard(conn.topic)
+            if not todo or k + 1 >= PROBE_MESSAGES:
+                break
+    except BagError:
+        raise
+    except Exception:  # a corrupt chunk: the pass names it, with its position, when it reads the bag
+        log.debug("bag %s: probe ended at an unreadable message", reader.path, exc_info=True)
+    finally:
+        messages.close()
 
 
 def _frames(config: BagReaderConfig, camera_frames: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
@@ -219,6 +339,7 @@ class BagSource:
         reader = _open(self._bag, self.path)
         try:
             self._topics = list(_check_topics(reader, self._roles, self.path, require_landmarks))
+            _probe(reader, self._topics)
             self.message_counts = {t: int(reader.topics[t].msgcount) for t in self._topics}
             self._span_ns = (int(reader.start_time), int(reader.end_time))
         finally:

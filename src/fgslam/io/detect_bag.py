@@ -105,7 +105,7 @@ def write_with_rocks(bag: Path, out: Path, rocks: Iterable[tuple[int, RockObserv
     from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
     from fgslam.io.bag_reader import _open, _resolve
-    from reloc.bag_spec import ROCKS_TYPE
+    from reloc.bag_spec import ROCKS_TYPE, ros2_msgtype
     from reloc.rock_bag import encode_rocks
     from sim.bag_writer import ROSBAG2_VERSION, message_builder
 
@@ -123,10 +123,18 @@ def write_with_rocks(bag: Path, out: Path, rocks: Iterable[tuple[int, RockObserv
                 for c in reader.connections:
                     if c.topic not in conns:
                         ext = c.ext
-                        source = ({"msgdef": c.msgdef.data, "rihs01": c.digest} if c.msgdef.data
-                                  else {"typestore": builder.ts})  # a bag without definitions: Jazzy's
+                        # the definition as recorded when it comes with its hash; otherwise (a bag
+                        # without definitions, a bare storage file, ROS 1-style names) the
+                        # project's typestore's, under the ROS 2 name
+                        msgtype = c.msgtype if c.msgdef.data and c.digest else ros2_msgtype(c.msgtype)
+                        source = ({"msgdef": c.msgdef.data, "rihs01": c.digest} if c.msgdef.data and c.digest
+                                  else {"typestore": builder.ts})
+                        if "typestore" in source and msgtype not in builder.ts.fielddefs:
+                            raise BagError(f"bag {bag}: topic {c.topic}: type {c.msgtype} comes without its "
+                                           "definition and type hash, and fgslam does not know it: the bag with "
+                                           "rocks cannot be written")
                         conns[c.topic] = writer.add_connection(
-                            c.topic, c.msgtype, **source,
+                            c.topic, msgtype, **source,
                             serialization_format=getattr(ext, "serialization_format", "cdr"),
                             offered_qos_profiles=getattr(ext, "offered_qos_profiles", ()))
                 rock_conn = writer.add_connection(rocks_topic, ROCKS_TYPE, typestore=builder.ts)

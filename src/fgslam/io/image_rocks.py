@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from fgslam.errors import BagError
-from reloc.bag_spec import CAMERA_INFO_TYPE, COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, TopicNames
+from reloc.bag_spec import (
+    CAMERA_INFO_TYPE,
+    COMPRESSED_IMAGE_TYPE,
+    IMAGE_TYPE,
+    TopicNames,
+    ros2_msgtype,
+)
 from reloc.camera_bag import (
     ImageDecodeError,
     Rectifier,
@@ -117,8 +123,8 @@ class StereoBag:
                              (t.left_info, (CAMERA_INFO_TYPE,)), (t.right_info, (CAMERA_INFO_TYPE,))):
             if topic not in info or info[topic].msgcount == 0:
                 raise self._fail(info, f"camera topic {topic} missing or empty")
-            if info[topic].msgtype not in types:
-                raise BagError(f"bag {self.path}: topic {topic} has type {info[topic].msgtype}, expected "
+            if info[topic].msgtype not in types:  # the ROS 2 form (fgslam.io.bag_reader.OpenBag)
+                raise BagError(f"bag {self.path}: topic {topic} has type {info[topic].msgtype or 'mixed'}, expected "
                                f"{' or '.join(types)}")
         self.n_pairs = min(info[self.left_topic].msgcount, info[self.right_topic].msgcount)
         try:
@@ -132,7 +138,7 @@ class StereoBag:
     def _first(self, reader, topic: str):
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _, raw in reader.messages(connections=conns):
-            return reader.deserialize(raw, conn.msgtype)
+            return reader.decode(conn, raw)
         raise BagError(f"bag {self.path}: topic {topic} holds no message")
 
     def _mounting(self, reader) -> np.ndarray:
@@ -143,7 +149,7 @@ class StereoBag:
         if not frame:
             raise ImageDecodeError(f"{self.topics.left_info} has no frame_id: give images.T_base_cam in the config")
         conns = [c for c in reader.connections if c.topic == self.topics.tf_static]
-        msgs = (reader.deserialize(raw, conn.msgtype) for conn, _, raw in reader.messages(connections=conns))
+        msgs = (reader.decode(conn, raw) for conn, _, raw in reader.messages(connections=conns))
         return resolve_transform(static_transforms(msgs), cfg.base_frame, frame)
 
     def pairs(self, after_ns: int | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
@@ -151,7 +157,7 @@ class StereoBag:
         stamped at or before ``after_ns`` are skipped undecoded. Unpaired images are logged."""
         from fgslam.io.bag_reader import _open
 
-        tol_ns = int(round(self.config.pair_tolerance_s * 1e9))
+        tol_ns = round(self.config.pair_tolerance_s * 1e9)
         reader = _open(self._bag, self.path)
         pending: dict[str, dict[int, tuple]] = {self.left_topic: {}, self.right_topic: {}}
         other = {self.left_topic: self.right_topic, self.right_topic: self.left_topic}
@@ -159,19 +165,19 @@ class StereoBag:
         try:
             conns = [c for c in reader.connections if c.topic in pending]
             for conn, _, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg, msgtype = reader.decode(conn, raw), ros2_msgtype(conn.msgtype)
                 ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
                 waiting = pending[other[conn.topic]]
                 match = min(waiting, key=lambda s: abs(s - ns), default=None)
                 if match is None or abs(match - ns) > tol_ns:
-                    pending[conn.topic][ns] = (msg, conn.msgtype)
+                    pending[conn.topic][ns] = (msg, msgtype)
                     for side in pending.values():  # a frame a whole second old gets no partner any more
                         for s in [s for s in side if s < ns - 1_000_000_000]:
                             del side[s]
                             n_unpaired += 1
                     continue
                 mate = waiting.pop(match)
-                left, right = ((msg, conn.msgtype), mate) if conn.topic == self.left_topic else (mate, (msg, conn.msgtype))
+                left, right = ((msg, msgtype), mate) if conn.topic == self.left_topic else (mate, (msg, msgtype))
                 t_ns = min(ns, match)
                 if after_ns is not None and t_ns <= after_ns:
                     continue
