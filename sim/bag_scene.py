@@ -11,6 +11,8 @@ camera mounting) and ``stereo_left_optical`` -> ``stereo_right_optical`` (the ba
 
 from __future__ import annotations
 
+import dataclasses
+
 import datetime
 from dataclasses import dataclass
 from typing import Literal
@@ -76,6 +78,18 @@ def bag_style(name: str, epoch_ns: int | None = None) -> tuple[BagStyle, TopicNa
         style = BagStyle(epoch_ns=epoch_ns, cmd_vel_stamped=style.cmd_vel_stamped,
                          image_format=style.image_format, tf=style.tf)
     return style, topics
+
+
+def bag_description(style: BagStyle | None, topics: TopicNames | None, images: bool = False) -> dict:
+    """How a simulated bag was written, for world.yaml: its style (epoch, stamped command, image
+    format, /tf), whether it holds stereo images, and its topic names (so that ``fgslam run`` can
+    be given the same ``--topic`` map the bag needs)."""
+    style, topics = style or BagStyle(), topics or TopicNames()
+    named = {f.name: getattr(topics, f.name) for f in dataclasses.fields(topics)
+             if isinstance(getattr(topics, f.name), str)}
+    return {"epoch_ns": int(style.epoch_ns), "cmd_vel_stamped": bool(style.cmd_vel_stamped),
+            "images": bool(images), "image_format": style.image_format if images else None,
+            "tf": bool(style.tf), "topics": named}
 
 
 def parse_epoch(text: str | None) -> int | None:

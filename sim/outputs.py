@@ -61,9 +61,11 @@ def write_catalog_csv_plain(path: Path, catalog: RockCatalog) -> None:
     np.savetxt(path, data, delimiter=",", header="x,y,size,score", comments="", fmt="%.4f")
 
 
-def write_outputs(run, out_dir: Path, *, catalog: bool = True, orbital_gsd_m: float = ORBITAL_PNG_GSD_M) -> dict[str, Path]:
+def write_outputs(run, out_dir: Path, *, catalog: bool = True, orbital_gsd_m: float = ORBITAL_PNG_GSD_M,
+                  bag: dict | None = None) -> dict[str, Path]:
     """Write world.yaml, rocks_true.csv, orbital.png (and catalog.csv unless ``catalog`` is False)
-    into ``out_dir``; returns the paths by name."""
+    into ``out_dir``; returns the paths by name. ``bag``: how the bag was written
+    (:func:`sim.bag_scene.bag_description`), recorded in world.yaml."""
     import cv2
     import yaml
 
@@ -73,7 +75,10 @@ def write_outputs(run, out_dir: Path, *, catalog: bool = True, orbital_gsd_m: fl
     except OSError as exc:
         raise SimError(f"cannot create output directory {out_dir}: {exc}") from exc
     paths = {name: out_dir / name for name in ("world.yaml", "rocks_true.csv", "orbital.png")}
-    paths["world.yaml"].write_text(yaml.safe_dump(world_yaml_dict(run, orbital_gsd_m), sort_keys=False))
+    doc = world_yaml_dict(run, orbital_gsd_m)
+    if bag is not None:
+        doc["bag"] = bag
+    paths["world.yaml"].write_text(yaml.safe_dump(doc, sort_keys=False))
     write_rocks_true_csv(paths["rocks_true.csv"], run.rocks_true)
     img, _ = orbital_image(run.world, orbital_gsd_m)
     if not cv2.imwrite(str(paths["orbital.png"]), img[:, :, ::-1]):

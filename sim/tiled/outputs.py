@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from reloc.config import config_to_dict
+from sim.bag_scene import bag_description
 from sim.bag_writer import BagSummary, write_bag
 from sim.config import SimConfig
 from sim.errors import SimError
@@ -134,6 +135,7 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
                          "equilibrium": "Hartmann (1984)" if rc.tiled.craters.equilibrium else None,
                          "age_gyr": rc.tiled.craters.age_gyr,
                          "diameter_m": [rc.tiled.craters.min_diameter_m, rc.tiled.craters.max_diameter_m]},
+        "bag": bag_description(style, topics),
         "route": [[round(float(x), 2), round(float(y), 2)] for x, y in sim.driver.route],
         "backend_overrides": overrides,
         "relocalizer": reloc,

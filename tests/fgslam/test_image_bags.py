@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from fgslam.cli import main
 from fgslam.io import read_bag
@@ -165,3 +166,20 @@ def test_an_independent_reader_resolves_tf_and_puts_rocks_on_true_rocks(dirs):
             errors.append(np.min(np.linalg.norm(true_xy - xyz_world[:2], axis=1)))
     assert len(errors) > 10
     assert np.median(errors) < 0.15  # stereo at a few metres: centimetres to a decimetre
+
+
+def test_world_yaml_records_how_the_bag_was_written(dirs):
+    """world.yaml says the bag's style, whether it holds images and its topic names (the --topic
+    map a run of the robot-style bag needs), and the bag has those topics."""
+    from rosbags.highlevel import AnyReader
+
+    from sim.bag_scene import ROBOT_EPOCH_NS
+
+    root, _ = dirs
+    for name, imu, epoch in (("fgslam", "/imu", 0), ("robot", "/imu/data", ROBOT_EPOCH_NS)):
+        bag = yaml.safe_load((root / name / "world.yaml").read_text())["bag"]
+        assert bag["epoch_ns"] == epoch and bag["images"] and bag["image_format"] == "png" and bag["tf"]
+        assert bag["topics"]["imu"] == imu and bag["cmd_vel_stamped"] == (name == "fgslam")
+        with AnyReader([root / name / "bag"]) as reader:
+            assert {bag["topics"]["imu"], bag["topics"]["left_info"]} <= set(reader.topics)
+            assert any(t.startswith(bag["topics"]["left_image"]) for t in reader.topics)

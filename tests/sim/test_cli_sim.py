@@ -140,6 +140,8 @@ def test_a_kilometre_bag_in_the_robot_style_carries_tf_and_real_stamps_and_runs(
                  "--out", str(out)]) == 0
     meta = yaml.safe_load((out / "bag" / "metadata.yaml").read_text())
     assert meta["rosbag2_bagfile_information"]["custom_data"]["fgslam.catalog"] == "catalog.csv"
+    bag = yaml.safe_load((out / "world.yaml").read_text())["bag"]  # how it was written
+    assert bag["topics"]["imu"] == ROBOT_TOPICS.imu and bag["epoch_ns"] == ROBOT_EPOCH_NS and not bag["images"]
     with AnyReader([out / "bag"]) as reader:
         topics = {c.topic: c for c in reader.connections}
         assert {ROBOT_TOPICS.imu, ROBOT_TOPICS.wheel_odom, "/tf", "/tf_static"} <= set(topics)

@@ -31,7 +31,7 @@ def write_sim_files(run, directory: Path, style=None, topics=None, frames=None, 
     detections out (the images are then the rocks' only input, as on a rover)."""
     from fgslam.io.catalog_csv import write_catalog_csv
     from reloc.measurements import RockObservations, sort_key
-    from sim.bag_scene import BagScene, stereo_scene
+    from sim.bag_scene import BagScene, bag_description, stereo_scene
     from sim.bag_writer import write_bag
     from sim.outputs import write_outputs
 
@@ -47,7 +47,7 @@ def write_sim_files(run, directory: Path, style=None, topics=None, frames=None, 
         scene = BagScene(T_world_odom=T0, catalog_xy_m=run.catalog.xy_m[:, :2], catalog_size_m=run.catalog.size_m)
     summary = write_bag(directory / "bag", measurements, topics=topics, style=style, scene=scene,
                         custom_data={"fgslam.catalog": "catalog.csv"})
-    write_outputs(run, directory, catalog=False)
+    write_outputs(run, directory, catalog=False, bag=bag_description(style, topics, images=bool(frames)))
     write_catalog_csv(directory / "catalog.csv", run.catalog)
     return summary
 
