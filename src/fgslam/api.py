@@ -64,7 +64,7 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
     from fgslam.runner import run_backend
     from reloc.config import config_to_dict
 
-    gt, span = evaluation_truth(inputs, cfg.long_traverse)
+    gt, span = evaluation_truth(inputs)
     runner_cfg = runner_config_for(check_stream(inputs, cfg.runner), span, cfg.long_traverse)
     be = make_backend(backend, inputs.initial,  # bounded back-ends on a long traverse (fgslam.long_traverse)
                       backend_overrides_for(backend, cfg.backend_overrides.get(backend), span, cfg.long_traverse))

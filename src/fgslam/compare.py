@@ -213,7 +213,7 @@ def compare_world(
     if cfg.reference_backend not in cfg.backends:
         raise CompareError(f"reference_backend {cfg.reference_backend!r} is not among {cfg.backends}")
     wall0 = time.perf_counter()
-    gt, span = evaluation_truth(inputs, cfg.long_traverse)
+    gt, span = evaluation_truth(inputs)
 
     relocs = relocalizers if relocalizers is not None else relocalizer_set(inputs, cfg)
     ref_key = run_key(cfg.reference_backend, True)

@@ -297,14 +297,13 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
     )
 
 
-def truth_of(inputs: RunInputs, min_period_s: float = 0.0) -> Trajectory | None:
-    """Ground-truth trajectory of the inputs (None without /ground_truth); with ``min_period_s``
-    > 0, one pose per that period at most (:func:`fgslam.runner.ground_truth_trajectory`)."""
+def truth_of(inputs: RunInputs) -> Trajectory | None:
+    """Ground-truth trajectory of the inputs (None without /ground_truth)."""
     from fgslam.runner import ground_truth_trajectory
 
     ground_truth = getattr(inputs.measurements, "ground_truth", None)  # a stream reads just that topic
     poses = ground_truth() if ground_truth is not None else (m for m in inputs.measurements if isinstance(m, GroundTruthPose))
-    return ground_truth_trajectory(poses, min_period_s)
+    return ground_truth_trajectory(poses)
 
 
 def stream_span_s(inputs: RunInputs) -> tuple[float, float]:

@@ -18,7 +18,6 @@ An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -57,14 +56,14 @@ class LongTraverseConfig:
     ekf_keep_seen_s: NonNegative = 2.0
     # What a long traverse keeps for its evaluation: a pose with its covariance is a 424-B row, so
     # 10 Hz over a 0.12 m/s traverse is ~35 kB per metre for each of the runner's online record
-    # and the EKF's pose history, and the 30 Hz ground truth as a trajectory ~32 kB: together
-    # 0.9 GB over 10 km, the whole growth of `fgslam run`'s memory with distance. The rover
-    # moves ~0.1 m a second, its error changes over metres, and iSAM2 keeps one keyframe a
-    # second (KeyframeConfig.interval_s): one pose a second is the resolution of the estimates,
-    # and 10 Hz of truth interpolates to well under a millimetre at that speed.
+    # and the EKF's pose history: with the ground truth held twice, 0.9 GB over 10 km, the whole
+    # growth of `fgslam run`'s memory with distance. The rover moves ~0.1 m a second, its error
+    # changes over metres, and iSAM2 keeps one keyframe a second (KeyframeConfig.interval_s):
+    # one pose a second is the resolution of the estimates. The truth stays at its own rate
+    # (held once, fgslam.runner.run_backend's keep_truth), so that evo, which pairs stamps
+    # without interpolating, evaluates every pose of ground_truth.tum's run as fgslam does.
     record_rate_hz: Positive = 1.0  # the runner's online estimate at most this often (RunnerConfig.record_rate_hz)
     ekf_trajectory_period_s: Positive = 1.0  # the EKF's pose history (its final trajectory) at most this often
-    truth_rate_hz: Positive = 10.0  # the ground truth kept for the evaluation at most this often
 
 
 def stream_span_s(measurements) -> float:
@@ -102,16 +101,11 @@ def runner_config_for(runner: RunnerConfig, duration_s: float, cfg: LongTraverse
     return dataclasses.replace(runner, record_rate_hz=cfg.record_rate_hz)
 
 
-def evaluation_truth(inputs, cfg: LongTraverseConfig) -> tuple[Trajectory | None, float]:
+def evaluation_truth(inputs) -> tuple[Trajectory | None, float]:
     """The ground truth to evaluate runs over ``inputs`` with, and the span (s) that decides
-    whether they are a long traverse: the stream's span when it is known without reading it (a
-    bag's), so that a long traverse's truth is read at ``cfg.truth_rate_hz`` from the start,
-    else the truth's span (:func:`run_span_s`)."""
+    whether they are a long traverse (:func:`run_span_s`: the truth's, else the stream's)."""
     from fgslam.inputs import truth_of
 
-    span = stream_span_s(inputs.measurements)
-    if math.isfinite(span):
-        return truth_of(inputs, 1.0 / cfg.truth_rate_hz if is_long(span, cfg) else 0.0), span
     gt = truth_of(inputs)
     return gt, run_span_s(gt, inputs.measurements)
 

@@ -57,6 +57,12 @@ class RowBuffer:
         else:
             self._n = r
 
+    def blocks(self):
+        """The rows block by block, oldest first (views, no copy)."""
+        yield from self._full
+        if self._n:
+            yield self._cur[: self._n]
+
     def array(self, start: int = 0) -> np.ndarray:
         """The rows from index ``start`` on (all by default), (len - start, width), a copy."""
         if start >= len(self):

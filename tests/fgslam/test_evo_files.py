@@ -34,8 +34,12 @@ def synth_dir(tmp_path_factory):
     return write_input_dir(tmp_path_factory.mktemp("evo") / "synth", make_stream(seed=5, duration_s=60.0))
 
 
-def test_evo_ape_and_rpe_on_fgslams_files_equal_its_figures(synth_dir, tmp_path):
-    (tmp_path / "c.yaml").write_text(yaml.safe_dump({"rpe_delta_m": 2.0}))
+@pytest.mark.parametrize("long", [False, True], ids=["yard", "long traverse"])
+def test_evo_ape_and_rpe_on_fgslams_files_equal_its_figures(synth_dir, tmp_path, long):
+    """Also as a long traverse (one pose a second recorded, fgslam.long_traverse): evo pairs stamps
+    without interpolating, so ground_truth.tum keeps every truth pose."""
+    cfg = {"rpe_delta_m": 2.0, **({"long_traverse": {"min_duration_s": 30.0}} if long else {})}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
     out = tmp_path / "run"
     assert main(["run", str(synth_dir), "--backend", "ekf", "--out", str(out), "--config", str(tmp_path / "c.yaml")]) == 0
     assert {p.name for p in out.glob("*.tum")} == {"ekf_reloc.tum", "ground_truth.tum"}
