@@ -87,6 +87,64 @@ def test_sweeps_expand_to_every_combination_of_tasks():
     assert variants_from_sweeps([]) == {"base": {}}
 
 
+def test_a_kilometre_preset_takes_its_own_config_and_its_backend_yaml_under_the_overrides():
+    """On a kilometre preset the simulator overrides lie on that preset's config (as `fgslam sim`
+    gives it), and the task's comparison overrides on the run's backend.yaml, merged key by key: a
+    window set for the smoother keeps the calibration its sensors need."""
+    from fgslam.campaign.spec import build_configs
+    from sim.tiled.presets import backend_calibration, preset_config, relocalizer_calibration
+
+    over = parse_overrides(["traverse.distance_m=40", "backend_overrides.isam2.fixed_lag_s=60"])
+    preset = preset_config("rocky-1km", 2)
+    base = {"backend_overrides": backend_calibration(preset), "relocalizer": relocalizer_calibration(preset)}
+    sim_cfg, cmp_cfg = build_configs(over, "rocky-1km", 2, compare_base=base)
+    assert sim_cfg.traverse.distance_m == 40.0
+    assert sim_cfg.sensors == preset.sensors and sim_cfg.sensors.cmd.target_drift_pct is None  # not the yard's
+    isam2 = cmp_cfg.backend_overrides["isam2"]
+    assert isam2["fixed_lag_s"] == 60.0 and isam2["calibration"] == base["backend_overrides"]["isam2"]["calibration"]
+    assert cmp_cfg.backend_overrides["ekf"] == base["backend_overrides"]["ekf"]
+    assert cmp_cfg.relocalizer.matcher["sigma_m"] == base["relocalizer"]["matcher"]["sigma_m"]
+    assert base["backend_overrides"]["isam2"].get("fixed_lag_s") is None  # the base is not changed
+    # a yard keeps the yard defaults
+    yard, _ = build_configs(over)
+    assert yard.sensors.cmd.target_drift_pct is not None
+    # what a kilometre preset refuses is refused at expansion, naming the world
+    with pytest.raises(CampaignError, match="rocky-1km"):
+        expand(CampaignSpec(("rocky-1km",), (0,), parse_overrides(["faults.camera_blackout={start_s: 5, duration_s: 5}"])))
+    # a spec built in code with a key lacking its prefix finds it; an unknown key is named
+    _, cfg = build_configs({"relocalizer.period_s": 7.0})
+    assert cfg.relocalizer.period_s == 7.0
+    with pytest.raises(CampaignError, match="'traverse_m'"):
+        expand(CampaignSpec(("cnes",), (0,), {"traverse_m.distance_m": 5.0}))
+
+
+@pytest.mark.slow
+def test_a_kilometre_task_streams_its_preset_and_leaves_no_files(tmp_path, monkeypatch):
+    """A kilometre task simulates its preset into a temporary bag on the worker, compares the four
+    variants on it streamed, and removes the bag; its record carries drift, update p99 and RSS."""
+    import tempfile
+
+    from fgslam.campaign import run_task
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    task = expand(CampaignSpec(("rocky-1km",), (2,), {"sim.traverse.distance_m": 6.0}))[0]
+    rec = run_task(task)
+    assert rec["status"] == "ok", rec.get("traceback")
+    res = rec["result"]
+    assert res["distance_m"] == pytest.approx(6.0, abs=1.0)
+    assert set(res["runs"]) == {"ekf", "ekf_reloc", "isam2", "isam2_reloc", "dead_reckoning"}
+    for key in ("ekf", "ekf_reloc", "isam2", "isam2_reloc"):
+        run = res["runs"][key]
+        assert 0.0 < run["ate_rmse_m"] < 0.1 and run["drift_pct"] is not None
+        assert run["n_landmarks"] > 10 and run["nees_position"]["n_eff"] > 1
+        assert rec["runtime"]["runs_update_p99_ms"][key] > 0
+    assert res["runs"]["dead_reckoning"]["ate_rmse_m"] > 2 * res["runs"]["ekf"]["ate_rmse_m"]
+    assert res["fixes"]["attempts"] > 0
+    assert rec["runtime"]["peak_rss_mb"] > 100
+    assert list(tmp_path.iterdir()) == []  # the bag and catalogs went with the task
+    assert len(json.dumps(rec)) < 10_000
+
+
 # ---- aggregation ----------------------------------------------------------------------------------
 
 def _record(world, seed, ate_isam2_reloc, fix_err, rtf, status="ok"):

@@ -33,7 +33,14 @@ SUMMARY_ROWS = [
     ("fixes.position_error_median_m", "Fix median position error [m]", 1.0),
     ("runs.ekf_reloc.inside_3sigma", "EKF + reloc inside 3-sigma [%]", 100.0),
     ("runs.isam2_reloc.inside_3sigma", "iSAM2 + reloc inside 3-sigma [%]", 100.0),
+    ("runs.ekf_reloc.ate_max_m", "EKF + reloc max error [m]", 1.0),
+    ("runs.isam2_reloc.ate_max_m", "iSAM2 + reloc max error [m]", 1.0),
+    ("runs.ekf.drift_pct", "EKF drift without fixes [% of distance]", 1.0),
+    ("runs.isam2.drift_pct", "iSAM2 drift without fixes [% of distance]", 1.0),
     ("runtime.real_time_factor", "Real-time factor (whole comparison)", 1.0),
+    ("runtime.runs_update_p99_ms.ekf_reloc", "EKF + reloc update p99 [ms]", 1.0),
+    ("runtime.runs_update_p99_ms.isam2_reloc", "iSAM2 + reloc update p99 [ms]", 1.0),
+    ("runtime.peak_rss_mb", "Worker peak RSS [MB]", 1.0),
 ]
 TASK_COLUMNS = [
     ("runs.ekf.ate_rmse_m", "EKF"), ("runs.ekf_reloc.ate_rmse_m", "EKF + reloc"),

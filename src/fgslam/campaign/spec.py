@@ -155,9 +155,12 @@ def canonical_key(key: str) -> str:
 
 
 def nest(overrides: dict) -> dict:
-    """{"compare.relocalizer.period_s": 5} -> {"compare": {"relocalizer": {"period_s": 5}}}."""
+    """{"compare.relocalizer.period_s": 5} -> {"compare": {"relocalizer": {"period_s": 5}}}; a key
+    without its prefix finds it (:func:`canonical_key`), an unknown one is an error (a spec built in
+    code with ``"traverse.distance_m"`` must not run the default traverse without a word)."""
     out: dict = {}
     for key, value in overrides.items():
+        key = canonical_key(key)
         node = out
         *parents, leaf = key.split(".")
         for p in parents:
@@ -171,15 +174,34 @@ def nest(overrides: dict) -> dict:
     return out
 
 
-def build_configs(overrides: dict):
-    """(SimConfig, CompareConfig) from canonical dotted overrides (world/seed left at their defaults)."""
+def merged(base: dict, over: dict) -> dict:
+    """``over`` laid on ``base``, mappings merged key by key at every depth (a task's
+    ``backend_overrides.isam2.fixed_lag_s`` adds to a kilometre run's ``backend.yaml`` instead of
+    replacing its calibration); neither argument is changed."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merged(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def build_configs(overrides: dict, world: str | None = None, seed: int = 0, compare_base: dict | None = None):
+    """(SimConfig, CompareConfig) from canonical dotted overrides. On a kilometre preset ``world``
+    the simulator overrides apply to that preset's config for ``seed`` (as ``fgslam sim`` does);
+    ``compare_base`` (the mapping of a run's ``backend.yaml``: the back-ends' calibration for its
+    sensors) lies under the comparison overrides. World and seed are otherwise left at their
+    defaults (the task sets them)."""
     from fgslam.compare import CompareConfig
     from reloc.config import config_from_dict
     from sim.config import SimConfig
+    from sim.tiled.presets import is_tiled, preset_config
 
     tree = nest(overrides)
-    sim_cfg = config_from_dict(SimConfig, tree.get("sim"), where="sim.")
-    cmp_cfg = config_from_dict(CompareConfig, tree.get("compare"), where="compare.")
+    base = preset_config(world, seed) if world is not None and is_tiled(world) else None
+    sim_cfg = config_from_dict(SimConfig, tree.get("sim"), base=base, where="sim.")
+    cmp_cfg = config_from_dict(CompareConfig, merged(compare_base or {}, tree.get("compare") or {}), where="compare.")
     return sim_cfg, dataclasses.replace(cmp_cfg, workers=1)
 
 
@@ -207,12 +229,19 @@ def expand(spec: CampaignSpec) -> list[dict]:
     from sim.errors import SimError
 
     tasks = []
+    from sim.tiled.presets import is_tiled
+
+    # a yard's or Gazebo world's config does not depend on the world; a kilometre preset's does
+    worlds = list(dict.fromkeys(spec.worlds))
+    checked = ([None] if any(not is_tiled(w) for w in worlds) else []) + [w for w in worlds if is_tiled(w)]
     for name, var in spec.variants.items():
-        try:
-            sim_cfg, _ = build_configs({**spec.overrides, **var})
-            validate(sim_cfg)
-        except (RelocError, FgslamError, SimError, TypeError, ValueError) as exc:  # unknown keys, bad values
-            raise CampaignError(f"variant {name!r}: {exc}") from exc
+        for world in checked:
+            try:
+                sim_cfg, _ = build_configs({**spec.overrides, **var}, world, spec.seeds[0])
+                validate(sim_cfg)
+            except (RelocError, FgslamError, SimError, TypeError, ValueError) as exc:  # unknown keys, bad values
+                on = "" if world is None else f" on {world}"
+                raise CampaignError(f"variant {name!r}{on}: {exc}") from exc
     for world in spec.worlds:
         for name, var in spec.variants.items():
             merged = {**spec.overrides, **var}

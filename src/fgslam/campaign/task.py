@@ -13,9 +13,11 @@ import logging
 import math
 import os
 import socket
+import tempfile
 import threading
 import time
 import traceback
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +41,7 @@ def summarise_run(run: dict, baseline: str) -> dict:
     out: dict = {f"ate_{k}_m": _num(run.get("ate", {}).get(k)) for k in _ATE_FIELDS}
     out["ate_se2_rmse_m"] = _num(run.get("ate_se2_aligned", {}).get("rmse"))
     out["rpe_rmse_m"] = _num(run.get("rpe", {}).get("rmse"))
+    out["drift_pct"] = _num(run.get("drift_pct"))  # final planar error per distance travelled
     out["improvement_over_own_pct"] = _num(run.get("ate_improvement_over_own_pct"))
     out["improvement_over_baseline_pct"] = _num(run.get(f"ate_improvement_over_{baseline}_pct"))
     cons = run.get("consistency", {})
@@ -86,36 +89,78 @@ def summarise_comparison(metrics: dict, baseline: str) -> tuple[dict, dict]:
         "compare_s": _num(metrics.get("wall_s")),
         "real_time_factor": _num(metrics.get("real_time_factor")),
         "runs_wall_s": {k: _num(r.get("runtime", {}).get("wall_s")) for k, r in runs.items()},
+        "runs_update_p99_ms": {k: _num(r["runtime"]["update_p99_ms"]) for k, r in runs.items()
+                               if r.get("runtime", {}).get("update_p99_ms") is not None},
+        # the worker process's high-water mark when each pass ended (its passes run one after
+        # another, and a worker keeps its mark across the tasks it ran before)
+        "runs_peak_rss_mb": {k: _num(max(m["peak_rss_mb"] for m in r["memory"])) for k, r in runs.items()
+                             if r.get("memory")},
     }
+    runtime["peak_rss_mb"] = max((v for v in runtime["runs_peak_rss_mb"].values() if v is not None), default=None)
     return result, runtime
+
+
+def _yard_inputs(task: dict):
+    """A yard or Gazebo world simulated in memory, and the comparison config of the task."""
+    import dataclasses
+
+    from fgslam.campaign.spec import build_configs
+    from fgslam.inputs import RunInputs
+    from sim.simulate import simulate
+
+    sim_cfg, cmp_cfg = build_configs(task.get("overrides", {}))
+    sim_cfg = dataclasses.replace(sim_cfg, world=task["world"], seed=int(task["seed"]))
+    run = simulate(sim_cfg)
+    inputs = RunInputs(
+        name=os.path.basename(str(task["world"]).rstrip("/")) or str(task["world"]),
+        measurements=list(run.measurements), catalogs={"rocks": run.catalog}, initial=run.initial_pose,
+        source={"kind": "simulator", "world": str(task["world"]), "seed": int(task["seed"])},
+    )
+    return inputs, cmp_cfg
+
+
+def _kilometre_inputs(task: dict, workdir: Path):
+    """A kilometre preset streamed to a bag in ``workdir`` (the worker's own disk: a whole traverse
+    is 0.2-1 GB) and read back lazily with every catalog it wrote (rocks, craters), as ``fgslam
+    run`` takes a ``fgslam sim`` directory; the comparison config is the run's ``backend.yaml`` (the
+    back-ends' calibration for its sensors) under the task's comparison overrides."""
+    from fgslam.campaign.spec import build_configs
+    from fgslam.config_file import compare_overrides, read_yaml_mapping
+    from fgslam.inputs import load_sim_dir
+    from sim.tiled.outputs import simulate_to_bag
+
+    world, seed, overrides = task["world"], int(task["seed"]), task.get("overrides", {})
+    sim_cfg, _ = build_configs(overrides, world, seed)
+    sim_dir = workdir / "sim"
+    simulate_to_bag(sim_cfg, sim_dir, overwrite=False)
+    inputs = load_sim_dir(sim_dir)
+    inputs.name = world
+    inputs.source = {"kind": "simulator", "world": world, "seed": seed}
+    base = compare_overrides(read_yaml_mapping(sim_dir / "backend.yaml"))
+    _, cmp_cfg = build_configs(overrides, world, seed, compare_base=base)
+    return inputs, cmp_cfg
 
 
 def run_task(task: dict) -> dict:
     """Simulate ``task`` (world, seed, overrides; see :func:`fgslam.campaign.spec.expand`), run the
-    comparison in this process and return the task's record (status "ok" or "error")."""
+    comparison in this process and return the task's record (status "ok" or "error"). A kilometre
+    preset is streamed through a temporary directory removed with the task."""
     t0 = time.perf_counter()
     record = {k: task[k] for k in ("key", "world", "variant", "seed", "config_hash")}
     record["overrides"] = task.get("overrides", {})
     runtime: dict = {"host": socket.gethostname(), "pid": os.getpid()}
     try:
-        import dataclasses
-
-        from fgslam.campaign.spec import build_configs
         from fgslam.compare import compare_world
-        from fgslam.inputs import RunInputs
-        from sim.simulate import simulate
+        from sim.tiled.presets import is_tiled
 
-        sim_cfg, cmp_cfg = build_configs(task.get("overrides", {}))
-        sim_cfg = dataclasses.replace(sim_cfg, world=task["world"], seed=int(task["seed"]))
-        run = simulate(sim_cfg)
-        t_sim = time.perf_counter()
-        inputs = RunInputs(
-            name=os.path.basename(str(task["world"]).rstrip("/")) or str(task["world"]),
-            measurements=list(run.measurements), catalogs={"rocks": run.catalog}, initial=run.initial_pose,
-            source={"kind": "simulator", "world": str(task["world"]), "seed": int(task["seed"])},
-        )
-        with _COMPARE_LOCK:
-            wc = compare_world(inputs, cmp_cfg)
+        with tempfile.TemporaryDirectory(prefix="fgslam-task-") as tmp:
+            if is_tiled(task["world"]):
+                inputs, cmp_cfg = _kilometre_inputs(task, Path(tmp))
+            else:
+                inputs, cmp_cfg = _yard_inputs(task)
+            t_sim = time.perf_counter()
+            with _COMPARE_LOCK:
+                wc = compare_world(inputs, cmp_cfg)
         result, rt = summarise_comparison(wc.metrics, cmp_cfg.backends[0])
         runtime.update(sim_s=t_sim - t0, **rt)
         record.update(status="ok", result=result)

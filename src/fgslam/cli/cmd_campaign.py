@@ -11,7 +11,7 @@ from fgslam.cli.app import app
 
 @app.command("campaign")
 def campaign_cmd(
-    worlds: str = typer.Option(..., "--worlds", help="Comma-separated world presets (my2020, my2021, my2022, cnes) or Gazebo model directories."),
+    worlds: str = typer.Option(..., "--worlds", help="Comma-separated worlds: yard presets (my2020, my2021, my2022, cnes), kilometre presets (plains-2km, rocky-1km, cratered-3km, sparse-5km: streamed through a temporary bag on the worker, with their backend.yaml) or Gazebo model directories."),
     seeds: str = typer.Option(..., "--seeds", help="Simulator seeds: 0-9, 0,3,7 or 0-3,10-12."),
     out: Path = typer.Option(..., "--out", help="Output directory (results.jsonl, summary.md, summary.json, campaign.json)."),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler (tcp://host:8786); default: a local cluster."),
