@@ -37,6 +37,13 @@ class RowBuffer:
         for row in np.asarray(rows, dtype=float).reshape(-1, self.width):
             self.append(row)
 
+    def row(self, i: int) -> np.ndarray:
+        """Row ``i`` (a view: writing to it changes the buffer)."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"row {i} of a RowBuffer of {len(self)} rows")
+        k, r = divmod(i, self.block)
+        return self._full[k][r] if k < len(self._full) else self._cur[r]
+
     def last(self) -> np.ndarray:
         """The newest row (a view: writing to it changes the buffer)."""
         if not len(self):

@@ -23,7 +23,7 @@ def test_growth_is_the_positive_part_of_the_covariance_difference():
     G = sm._cov_growth(np.array([sm.kfs.t[k], sm.kfs.t[0], sm.kfs.t[k // 2]]))
     assert np.allclose(G[0], 0.0)
     for i, g in zip((0, k // 2), G[1:]):
-        D = sm.kfs.online_cov[k] - sm.kfs.online_cov[i]
+        D = sm.kfs.online_cov(k) - sm.kfs.online_cov(i)
         w, V = np.linalg.eigh(0.5 * (D + D.T))
         np.testing.assert_allclose(g, cov_world_to_gtsam(sm.T_kf[:3, :3], (V * np.maximum(w, 0)) @ V.T), atol=1e-12)
         assert np.linalg.eigvalsh(g).min() >= -1e-12

@@ -61,3 +61,18 @@ def test_truncating_to_the_whole_length_keeps_every_row(block):
     np.testing.assert_array_equal(buf.array(), rows)
     buf.append([-1.0, -2.0])
     assert len(buf) == len(rows) + 1 and buf.last().tolist() == [-1.0, -2.0]
+
+
+@pytest.mark.parametrize("block", [1, 3, 8])
+def test_row_reads_every_row_across_blocks_and_after_a_cut(block):
+    buf = RowBuffer(2, block=block)
+    rows = np.arange(2.0 * 11).reshape(-1, 2)
+    buf.extend(rows)
+    for i in range(len(rows)):
+        np.testing.assert_array_equal(buf.row(i), rows[i])
+    buf.truncate(5)
+    buf.append([-1.0, -2.0])
+    assert buf.row(5).tolist() == [-1.0, -2.0] and buf.row(4).tolist() == rows[4].tolist()
+    for i in (-1, 6):
+        with pytest.raises(IndexError):
+            buf.row(i)

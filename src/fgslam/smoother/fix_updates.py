@@ -49,7 +49,7 @@ class LateFixes:
         if cfg.gate_smoothed_marginal:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
-            cov_kf = cov_world_to_gtsam(T_kf[:3, :3], self.kfs.online_cov[k])
+            cov_kf = cov_world_to_gtsam(T_kf[:3, :3], self.kfs.online_cov(k))
         d2, dist = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res)
         if dist > cfg.gate_distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)

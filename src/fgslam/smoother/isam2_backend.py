@@ -195,16 +195,16 @@ class Isam2Smoother(LateFixes, Backend):
         drift while blind. Cached per keyframe."""
         k_now = len(self.kfs) - 1
         if self._growth_kf != k_now:  # a new keyframe: the keyframe times once, the growths afresh
-            self._growth_kf, self._growth, self._growth_t = k_now, {}, np.asarray(self.kfs.t)
+            self._growth_kf, self._growth, self._growth_t = k_now, {}, self.kfs.t
         idx = np.clip(np.searchsorted(self._growth_t, t_last, side="right") - 1, 0, k_now)
         out = np.zeros((len(idx), 6, 6))
-        C_now = self.kfs.online_cov[k_now]
+        C_now = self.kfs.online_cov(k_now)
         for i in np.unique(idx):
             if i == k_now:
                 continue
             G = self._growth.get(int(i))
             if G is None:
-                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], _psd(C_now - self.kfs.online_cov[i]))
+                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], _psd(C_now - self.kfs.online_cov(i)))
             out[idx == i] = G
         return out
 
@@ -218,7 +218,7 @@ class Isam2Smoother(LateFixes, Backend):
             return T
         dt = (acc.t_now if t is None else t) - acc.t_kf
         k = self.kfs.before(acc.t_kf + 1e-9)
-        return corrected_motion(T, self._slip, self._bias * dt, self.kfs.online_T[k][:3, :3])
+        return corrected_motion(T, self._slip, self._bias * dt, self.kfs.online_T(k)[:3, :3])
 
     def _predicted_cov(self, acc: OdometryAccumulator) -> np.ndarray:
         """The newest keyframe's marginal moved through the odometry ``acc`` since it (GTSAM tangent)."""
@@ -234,26 +234,26 @@ class Isam2Smoother(LateFixes, Backend):
     def _position_cov_at(self, t: np.ndarray) -> np.ndarray:
         """(K, 3, 3): the causal position covariance (world) of the latest keyframe at or before
         each of the times ``t`` (K,); zeros before the first."""
-        covs = self.kfs.online_cov
-        if not covs:
+        n = self.kfs.n_online
+        if not n:
             return np.zeros((len(t), 3, 3))
-        i = np.searchsorted(np.asarray(self.kfs.t[: len(covs)]), np.asarray(t, float), side="right") - 1
+        i = np.searchsorted(self.kfs.t[:n], np.asarray(t, float), side="right") - 1
         used, where = np.unique(np.maximum(i, 0), return_inverse=True)
-        out = np.array([covs[k][:3, :3] for k in used])[where.reshape(-1)]
+        out = np.array([self.kfs.online_cov(k)[:3, :3] for k in used])[where.reshape(-1)]
         out[i < 0] = 0.0
         return out
 
     def trajectory(self) -> Trajectory:
         """Smoothed keyframe poses with marginal covariances (protocol convention)."""
         n = len(self.kfs)
-        live = [i for i in range(n) if i not in self.kfs.frozen and self.solver.alive(X(i))]
+        live = [i for i in range(n) if not self.kfs.is_frozen(i) and self.solver.alive(X(i))]
         covs = dict(zip(live, self.solver.marginal_covs([X(i) for i in live])))
         Ts, Cs = [], []
         for i in range(n):
-            if i in self.kfs.frozen:
-                T, C = self.kfs.frozen[i]
+            if self.kfs.is_frozen(i):
+                T, C = self.kfs.frozen(i)
             elif i not in covs:  # marginalized without being frozen: causal estimate
-                T, C = self.kfs.online_T[i], self.kfs.online_cov[i]
+                T, C = self.kfs.online_T(i), self.kfs.online_cov(i)
             else:
                 T = self.solver.pose(X(i))
                 C = cov_gtsam_to_world(T[:3, :3], covs[i])
@@ -263,8 +263,7 @@ class Isam2Smoother(LateFixes, Backend):
 
     def online_trajectory(self) -> Trajectory:
         """Causal estimate at each keyframe, as it was right after that keyframe's update."""
-        n = len(self.kfs.online_T)
-        return Trajectory(np.array(self.kfs.t[:n]), np.array(self.kfs.online_T), np.array(self.kfs.online_cov))
+        return Trajectory(*self.kfs.online_arrays())
 
     def stats(self) -> BackendStats:
         """Counters, latencies (whole keyframe / fix processing, ms) and the list of retracted fixes."""
@@ -402,8 +401,8 @@ class Isam2Smoother(LateFixes, Backend):
                 if self.config.frozen_marginals:
                     C = cov_gtsam_to_world(T[:3, :3], self.solver.marginal_cov(key))
                 else:  # the causal covariance: an upper bound, and free
-                    C = self.kfs.online_cov[i]
-                self.kfs.frozen[i] = (T, C)
+                    C = self.kfs.online_cov(i)
+                self.kfs.freeze(i, T, C)
             else:  # a landmark of some kind (SmootherError for a key of no kind)
                 self.kinds.for_key(key).marginalize(i, self.solver)
             del self._stamps[key]
@@ -431,7 +430,7 @@ class Isam2Smoother(LateFixes, Backend):
             self._slip = float(self.solver.estimate(G(k))[0])
         if self.bias_on:
             self._bias = float(self.solver.estimate(B(k))[0])
-        if len(self.kfs.online_T) <= k:
+        if self.kfs.n_online <= k:
             self.kfs.record_online(self.T_kf, cov_gtsam_to_world(self.T_kf[:3, :3], self.cov_kf))
         for layer in self.kinds.used():
             layer.refresh(self.T_kf, self.solver)
