@@ -227,8 +227,6 @@ def expand(spec: CampaignSpec) -> list[dict]:
     from reloc.errors import RelocError
     from sim.config import validate
     from sim.errors import SimError
-
-    tasks = []
     from sim.tiled.presets import is_tiled
 
     # a yard's or Gazebo world's config does not depend on the world; a kilometre preset's does
@@ -242,11 +240,12 @@ def expand(spec: CampaignSpec) -> list[dict]:
             except (RelocError, FgslamError, SimError, TypeError, ValueError) as exc:  # unknown keys, bad values
                 on = "" if world is None else f" on {world}"
                 raise CampaignError(f"variant {name!r}{on}: {exc}") from exc
+    tasks = []
     for world in spec.worlds:
         for name, var in spec.variants.items():
-            merged = {**spec.overrides, **var}
-            h = config_hash(merged)
+            over = {**spec.overrides, **var}
+            h = config_hash(over)
             for seed in spec.seeds:
                 tasks.append({"key": task_key(world, name, seed), "world": world, "variant": name,
-                              "seed": int(seed), "overrides": merged, "config_hash": h})
+                              "seed": int(seed), "overrides": over, "config_hash": h})
     return tasks
