@@ -3,25 +3,17 @@ fixes over a simulated stream, per time bin, with the two-sided NEES verdict."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import pytest
 
 from fgslam.bench.consistency import main
+from tests.fgslam._yard_dir import write_yard_dir
 
 
 @pytest.fixture(scope="module")
 def sim_dir(tmp_path_factory):
-    from fgslam.io.sim_dir import write_sim_dir
-    from sim.config import SimConfig, TraverseConfig
-    from sim.simulate import simulate
-
-    cfg = SimConfig(world="my2020", seed=1)
-    cfg = dataclasses.replace(cfg, traverse=dataclasses.replace(cfg.traverse or TraverseConfig(), distance_m=8.0))
-    out = tmp_path_factory.mktemp("consbench") / "sim"
-    write_sim_dir(simulate(cfg), out)
-    return out
+    return write_yard_dir(tmp_path_factory.mktemp("consbench") / "sim", "my2020", 1, 8.0)
 
 
 def test_bins_cover_the_stretch_and_the_yaw_sigma_grows(sim_dir, tmp_path, capsys):

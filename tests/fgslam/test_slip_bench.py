@@ -3,26 +3,18 @@ truth: a stuck rover's slip is seen and confirmed, and nothing is seen where it 
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 
 from fgslam.bench.slip import main
+from tests.fgslam._yard_dir import write_yard_dir
 
 
 @pytest.fixture(scope="module")
 def stuck_dir(tmp_path_factory):
-    from fgslam.io.sim_dir import write_sim_dir
     from sim import faults as F
-    from sim.config import SimConfig, TraverseConfig
-    from sim.simulate import simulate
 
-    cfg = SimConfig(world="my2020", seed=0)
-    cfg = dataclasses.replace(cfg, traverse=dataclasses.replace(cfg.traverse or TraverseConfig(), distance_m=6.0),
-                              faults=F.FaultsConfig(stuck=F.Stuck(start_s=10.0, duration_s=20.0)))
-    out = tmp_path_factory.mktemp("slipbench") / "stuck"
-    write_sim_dir(simulate(cfg), out)
-    return out
+    return write_yard_dir(tmp_path_factory.mktemp("slipbench") / "stuck", "my2020", 0, 6.0,
+                          faults=F.FaultsConfig(stuck=F.Stuck(start_s=10.0, duration_s=20.0)))
 
 
 def test_the_stuck_spell_is_seen_and_nothing_else(stuck_dir, tmp_path, capsys):

@@ -3,25 +3,17 @@ table, the files, and the option checks."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import pytest
 
 from fgslam.cli import main
+from tests.fgslam._yard_dir import write_yard_dir
 
 
 @pytest.fixture(scope="module")
 def sim_dir(tmp_path_factory):
-    from fgslam.io.sim_dir import write_sim_dir
-    from sim.config import SimConfig, TraverseConfig
-    from sim.simulate import simulate
-
-    cfg = SimConfig(world="my2020", seed=1)
-    cfg = dataclasses.replace(cfg, traverse=dataclasses.replace(cfg.traverse or TraverseConfig(), distance_m=10.0))
-    out = tmp_path_factory.mktemp("wrongfix") / "sim"
-    write_sim_dir(simulate(cfg), out)
-    return out
+    return write_yard_dir(tmp_path_factory.mktemp("wrongfix") / "sim", "my2020", 1, 10.0)
 
 
 def test_wrong_fixes_are_refused_by_both_back_ends_and_the_table_is_written(sim_dir, tmp_path, capsys):
