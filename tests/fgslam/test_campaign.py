@@ -4,6 +4,7 @@ and seeded campaigns on Dask (1 vs 2 workers identical, a failing task reported,
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -116,6 +117,25 @@ def test_a_kilometre_preset_takes_its_own_config_and_its_backend_yaml_under_the_
     assert cfg.relocalizer.period_s == 7.0
     with pytest.raises(CampaignError, match="'traverse_m'"):
         expand(CampaignSpec(("cnes",), (0,), {"traverse_m.distance_m": 5.0}))
+
+
+def test_task_directories_of_dead_processes_are_swept_and_no_other(tmp_path):
+    """A worker killed in a task leaves its bag behind; the next task on the machine removes the
+    directories whose process is gone, and nothing else."""
+    from fgslam.campaign.task import TASK_DIR_PREFIX, sweep_task_dirs
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], check=True,
+                          capture_output=True, text=True)
+    dead_pid = int(dead.stdout)
+    left = tmp_path / f"{TASK_DIR_PREFIX}{dead_pid}-x1y2"
+    (left / "sim" / "bag").mkdir(parents=True)
+    (left / "sim" / "bag" / "bag.mcap").write_bytes(b"0" * 1000)
+    kept = [tmp_path / f"{TASK_DIR_PREFIX}{os.getpid()}-mine", tmp_path / f"{TASK_DIR_PREFIX}{os.getppid()}-alive",
+            tmp_path / f"{TASK_DIR_PREFIX}abc", tmp_path / "other-123-dir"]
+    for d in kept:
+        d.mkdir()
+    assert sweep_task_dirs(tmp_path) == [left]
+    assert not left.exists() and all(d.is_dir() for d in kept)
 
 
 @pytest.mark.slow

@@ -141,10 +141,42 @@ def _kilometre_inputs(task: dict, workdir: Path):
     return inputs, cmp_cfg
 
 
+TASK_DIR_PREFIX = "fgslam-task-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def sweep_task_dirs(root: str | os.PathLike | None = None) -> list[Path]:
+    """Remove the task directories (``fgslam-task-<pid>-*`` in ``root``, the temporary directory by
+    default) whose process is gone: a worker killed in a task (the nanny's SIGKILL, a lost
+    machine) cannot remove its bag, up to ~0.6 GB for a whole kilometre traverse, so the next
+    task on the machine does. Returns the directories removed."""
+    import shutil
+
+    root = Path(root if root is not None else tempfile.gettempdir())
+    removed = []
+    for d in root.glob(f"{TASK_DIR_PREFIX}*-*"):
+        pid = d.name[len(TASK_DIR_PREFIX):].split("-", 1)[0]
+        if d.is_dir() and pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+            log.info("removed %s, left by a task whose process is gone", d)
+    return removed
+
+
 def run_task(task: dict) -> dict:
     """Simulate ``task`` (world, seed, overrides; see :func:`fgslam.campaign.spec.expand`), run the
     comparison in this process and return the task's record (status "ok" or "error"). A kilometre
-    preset is streamed through a temporary directory removed with the task."""
+    preset is streamed through a temporary directory removed with the task (or, if the process is
+    killed, by the next task on the machine: :func:`sweep_task_dirs`)."""
     t0 = time.perf_counter()
     record = {k: task[k] for k in ("key", "world", "variant", "seed", "config_hash")}
     record["overrides"] = task.get("overrides", {})
@@ -153,7 +185,8 @@ def run_task(task: dict) -> dict:
         from fgslam.compare import compare_world
         from sim.tiled.presets import is_tiled
 
-        with tempfile.TemporaryDirectory(prefix="fgslam-task-") as tmp:
+        sweep_task_dirs()
+        with tempfile.TemporaryDirectory(prefix=f"{TASK_DIR_PREFIX}{os.getpid()}-") as tmp:
             if is_tiled(task["world"]):
                 inputs, cmp_cfg = _kilometre_inputs(task, Path(tmp))
             else:
