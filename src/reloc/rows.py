@@ -48,7 +48,7 @@ class RowBuffer:
         """The newest row (a view: writing to it changes the buffer)."""
         if not len(self):
             raise IndexError("last() of an empty RowBuffer")
-        return self._cur[self._n - 1] if self._n else self._full[-1][-1]
+        return self.row(len(self) - 1)
 
     def truncate(self, n: int) -> None:
         """Keep the first ``n`` rows."""

@@ -86,16 +86,15 @@ def bench_directory(directory: Path, cfg: WrongFixBenchConfig, config: Path | No
     from fgslam.compare import relocalizer_set
     from fgslam.config_file import load_compare_config
     from fgslam.fix_sources import OnlineFixes, ReplayedFixes
-    from fgslam.inputs import check_stream, load_sim_dir
-    from fgslam.long_traverse import backend_overrides_for, evaluation_truth, runner_config_for
+    from fgslam.inputs import check_stream, load_sim_dir, truth_of
+    from fgslam.long_traverse import backend_overrides_for, run_span_s, runner_config_for
     from fgslam.runner import run_backend
 
     say = progress or (lambda s: None)
     cmp_cfg = load_compare_config(sim_dir_config(directory, config))
     inputs = load_sim_dir(directory)
-    gt, span = evaluation_truth(inputs)
-    if cfg.duration_s is not None:
-        span = min(span, cfg.duration_s)
+    gt = truth_of(inputs)
+    span = run_span_s(gt, inputs.measurements, cfg.duration_s)
     runner = runner_config_for(check_stream(inputs, cmp_cfg.runner), span, cmp_cfg.long_traverse)
 
     def measurements():

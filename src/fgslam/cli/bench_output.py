@@ -48,6 +48,12 @@ def check_out(out: Path | None) -> None:
         check_output_path(out, "--out")
 
 
+def markdown_table(cols: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A (columns, rows) table as Markdown, for ``table.md``."""
+    return ("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
+            + "".join("| " + " | ".join(str(v) for v in r) + " |\n" for r in rows))
+
+
 def write_results(out: Path | None, results: dict, markdown: str | None, err: Console, json_default=float) -> None:
     """Write ``out/results.json`` (and ``out/table.md`` when ``markdown`` is given) when ``out``
     is given, as a whole (:class:`fgslam.io.outdir.OutputDir`: staged, then committed)."""

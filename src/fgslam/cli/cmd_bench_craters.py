@@ -25,7 +25,7 @@ def bench_craters_cmd(
     from rich.console import Console
 
     from fgslam.bench.craters import PASSES, CraterBenchConfig, bench_directory, summary_rows
-    from fgslam.cli.bench_output import check_out, print_tables, write_results
+    from fgslam.cli.bench_output import check_out, markdown_table, print_tables, write_results
     from fgslam.errors import InputFileError
 
     check_out(out)
@@ -48,6 +48,6 @@ def bench_craters_cmd(
     results = [bench_directory(d, cfg, progress=lambda s: err.print(s)) for d in directories]
     cols, rows = summary_rows(results)
     print_tables([(f"Craters in the loop ({backend})", cols, rows)], width=170)
-    md = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n" + "".join("| " + " | ".join(r) + " |\n" for r in rows)
+    md = markdown_table(cols, rows)
     write_results(out, {"config": {"backend": backend, "passes": list(names), "wrong_fix_m": wrong_fix_m,
                                    "min_catalogued": min_catalogued, "duration_s": duration_s}, "results": results}, md, err)

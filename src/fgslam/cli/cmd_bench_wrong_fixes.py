@@ -27,7 +27,7 @@ def bench_wrong_fixes_cmd(
 
     from fgslam.backends.registry import BACKEND_NAMES
     from fgslam.bench.wrong_fixes import WrongFixBenchConfig, bench_directory, summary_rows
-    from fgslam.cli.bench_output import check_out, print_tables, write_results
+    from fgslam.cli.bench_output import check_out, markdown_table, print_tables, write_results
     from fgslam.errors import InputFileError
 
     check_out(out)
@@ -47,7 +47,7 @@ def bench_wrong_fixes_cmd(
     results = [bench_directory(d, cfg, config, progress=lambda s: err.print(s)) for d in directories]
     cols, rows = summary_rows(results)
     print_tables([(f"Wrong fixes: {fraction:.0%} of the fixes moved {lo:g}-{hi:g} m", cols, rows)], width=150)
-    md = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n" + "".join("| " + " | ".join(r) + " |\n" for r in rows)
+    md = markdown_table(cols, rows)
     write_results(out, {"config": {"fraction": fraction, "offsets_m": [lo, hi], "backends": list(names), "seed": seed,
                                    "duration_s": duration_s, "config": str(config) if config else None},
                         "results": results}, md, err)

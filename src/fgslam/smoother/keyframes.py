@@ -94,12 +94,8 @@ class KeyframeStore:
     # ---------------------------------------------------------------- frozen on marginalization
     def freeze(self, i: int, T_world_base: np.ndarray, cov_world: np.ndarray) -> None:
         """Keep keyframe ``i``'s last smoothed pose (4, 4) and covariance (6, 6) as it leaves the window."""
-        row = np.concatenate([np.ravel(T_world_base), np.ravel(cov_world)])
-        if self._frozen_row[i] >= 0:  # frozen again (not expected): the newer estimate wins
-            self._frozen.row(int(self._frozen_row[i]))[:] = row
-            return
-        self._frozen_row[i] = len(self._frozen)
-        self._frozen.append(row)
+        self._frozen_row[i] = len(self._frozen)  # frozen again: the newer estimate wins
+        self._frozen.append(np.concatenate([np.ravel(T_world_base), np.ravel(cov_world)]))
 
     def is_frozen(self, i: int) -> bool:
         return bool(self._frozen_row[i] >= 0)
