@@ -128,6 +128,17 @@ def fixes_of(attempts: list[FixAttempt]):
     return [a.fix for a in attempts if a.fix is not None]
 
 
+def attempts_by_status(attempts: list[FixAttempt]) -> dict[str, dict[str, int]]:
+    """Attempts counted per relocalizer (its kinds, "+"-joined) and status ("fix", "no match",
+    "too few landmarks", ...; a status's parenthesised detail left out), in order of appearance."""
+    out: dict[str, dict[str, int]] = {}
+    for a in attempts:
+        by = out.setdefault(a.source or "rocks", {})
+        status = a.status.split(" (")[0]
+        by[status] = by.get(status, 0) + 1
+    return out
+
+
 def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt], rpe_delta_m: float) -> dict:
     """All metrics of one run as a JSON-ready dict (accuracy only with ground truth)."""
     out: dict = {
@@ -153,6 +164,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
+    out["fixes"]["attempts_by_status"] = attempts_by_status(attempts)
     first = next((o.fix for o in res.outcomes if o.accepted), None)  # time to first fix: measured, received
     out["fixes"]["first_fix_s"] = None if first is None else [first.t_meas - res.t_start, first.t_recv - res.t_start]
     out["reanchors"] = res.stats.extra.get("reanchors", [])

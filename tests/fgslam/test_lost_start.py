@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _synth_stream import make_stream
 
-from fgslam.backends.reanchor import Reanchoring, is_lost, planar_motion
+from fgslam.backends.reanchor import Reanchoring, anchor_cov, is_lost, planar_motion, split_start
 from fgslam.backends.registry import make_backend
 from fgslam.fix_sources import OnlineFixes
 from fgslam.relocalizer import Relocalizer
@@ -54,3 +54,63 @@ def test_a_lost_start_recovers_on_its_first_fix(lost_inputs, backend):
     # after the re-anchoring the fixes take the prior-guided path and reach the back-end as usual
     later = [o for o in res.outcomes[1:] if o.accepted]
     assert len(later) >= 3 and res.outcomes[0].reason.startswith("re-anchored")
+    # the attempts by status: what the whole-catalog search made of them, counted per relocalizer
+    from fgslam.compare import attempts_by_status
+
+    counts = attempts_by_status(res.attempts)
+    assert sum(sum(c.values()) for c in counts.values()) == len(res.attempts)
+    assert sum(c.get("fix", 0) for c in counts.values()) == sum(a.fix is not None for a in res.attempts)
+
+
+@pytest.mark.parametrize("backend", ["ekf", "isam2"])
+def test_a_lost_start_standing_still_keeps_every_update(backend):
+    """A rover that stands still at a lost start (50 m, 0.52 rad, as --start-sigma gives it):
+    iSAM2 with the wide prior in its graph had its first keyframe refused as an indeterminate
+    system (a 50 m sigma beside millimetres of odometry); the anchor keeps it out, and the
+    reported covariance still says lost by the start's sigma."""
+    from fgslam.inputs import StartSpec
+
+    inputs = make_stream(seed=3, duration_s=6.0, speed_mps=0.0)
+    start = StartSpec(sigma_xy_m=50.0, sigma_yaw_rad=0.52)
+    be = make_backend(backend, PoseEstimate(inputs.initial.t, inputs.initial.T_world_base, start.cov()))
+    run_backend(be, inputs.measurements)
+    assert getattr(be.inner, "n_failed_updates", 0) == 0
+    est = be.estimate()
+    assert be.lost and est.planar_sigma_m == pytest.approx(50.0, rel=1e-3)
+    assert np.sqrt(est.cov[5, 5]) == pytest.approx(0.52, rel=1e-2)
+    traj = be.trajectory()
+    assert np.all(np.sqrt(traj.cov[:, 0, 0]) > 49.9)
+
+
+def test_the_anchor_covariance_is_the_start_uncertainty_carried_to_each_pose():
+    """A start shifted by (dx, dy, dz) and turned by dyaw about p0 moves a pose at p by
+    dp + dyaw z x (p - p0) and turns it by dyaw: the sampled spread of poses so moved matches
+    ``anchor_cov`` (first order, small perturbations)."""
+    rng = np.random.default_rng(7)
+    p0 = np.array([3.0, -2.0, 1.0])
+    p = np.array([[40.0, 25.0, 4.0], [3.0, -2.0, 1.0], [-60.0, 10.0, -3.0]])
+    S = np.diag([0.2, 0.1, 0.05, 1e-3]) ** 2
+    S[0, 3] = S[3, 0] = 0.5 * 0.2 * 1e-3
+    d = rng.multivariate_normal(np.zeros(4), S, 20000)
+    for pk, C in zip(p, anchor_cov(S, p0, p)):
+        c, s = np.cos(d[:, 3]), np.sin(d[:, 3])
+        r = pk[:2] - p0[:2]
+        moved = np.column_stack([p0[0] + c * r[0] - s * r[1] + d[:, 0], p0[1] + s * r[0] + c * r[1] + d[:, 1],
+                                 pk[2] + d[:, 2]])
+        e = np.column_stack([moved - pk, d[:, 3]])
+        emp = np.cov(e.T)
+        sel = [0, 1, 2, 5]
+        scale = np.sqrt(np.outer(np.diag(emp), np.diag(emp)))  # sampling error ~ scale / sqrt(n)
+        assert np.all(np.abs(C[np.ix_(sel, sel)] - emp) <= 0.04 * scale)
+        assert np.allclose(C[3:5, :], 0.0) and np.allclose(C[:, 3:5], 0.0)
+
+
+def test_a_known_start_is_passed_through_unchanged():
+    inputs = make_stream(seed=3, duration_s=2.0)
+    lost = PoseEstimate(inputs.initial.t, inputs.initial.T_world_base,
+                        np.diag([30.0**2, 30.0**2, 1.0, 1e-4, 1e-4, 0.3**2]))
+    inner, anchor = split_start(lost)
+    assert inner.planar_sigma_m < 0.1 and np.allclose(inner.cov[3:5, 3:5], 1e-4 * np.eye(2))
+    assert np.allclose(np.diag(anchor), [30.0**2 - 1e-4, 30.0**2 - 1e-4, 1.0 - 1e-4, 0.3**2 - 0.002**2])
+    be = make_backend("ekf", inputs.initial)
+    assert not isinstance(be, Reanchoring)
