@@ -128,6 +128,9 @@ def fixes_of(attempts: list[FixAttempt]):
     return [a.fix for a in attempts if a.fix is not None]
 
 
+HEALTH_KEYS = ("n_failed_updates", "n_recoveries", "factorization", "n_cholesky_returns")
+
+
 def attempts_by_status(attempts: list[FixAttempt]) -> dict[str, dict[str, int]]:
     """Attempts counted per relocalizer (its kinds, "+"-joined) and status ("fix", "no match",
     "too few landmarks", ...; a status's parenthesised detail left out), in order of appearance."""
@@ -171,6 +174,14 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
     out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})
     out["n_fixes_older_than_window"] = int(res.stats.extra.get("n_fixes_older_than_window", 0))
+    # the solver's failures and recoveries (iSAM2: keyframe updates rolled back and retried without
+    # their landmark factors, rebuilds, Cholesky -> QR spells): a run that had any is not a clean run
+    health = {k: res.stats.extra[k] for k in HEALTH_KEYS if k in res.stats.extra}
+    if health:
+        out["solver_health"] = health
+        if health.get("n_failed_updates", 0) or health.get("n_recoveries", 0):
+            log.warning("%s: %d failed updates, %d solver recoveries (metrics.json solver_health)", res.backend,
+                        health.get("n_failed_updates", 0), health.get("n_recoveries", 0))
     if res.stats.extra.get("calibration"):  # the back-end's estimated stereo calibration
         out["calibration"] = res.stats.extra["calibration"]
     if gt is None:
