@@ -56,3 +56,81 @@ def test_what_the_store_hands_out_cannot_be_written_into_it():
     with pytest.raises(ValueError):
         kfs.frozen(0)[0][0, 0] = 7.0
     np.testing.assert_array_equal(kfs.online_T(0), _pose(1)[0])
+
+
+def test_time_alone_starts_a_keyframe_only_once_the_rover_has_moved():
+    from fgslam.smoother.config import KeyframeConfig, OdometryNoiseConfig
+    from fgslam.smoother.keyframes import keyframe_due
+    from fgslam.smoother.odometry_factors import OdometryAccumulator
+    from scipy.spatial.transform import Rotation
+
+    from reloc.odometry import OdometryStep
+
+    cfg, noise = KeyframeConfig(), OdometryNoiseConfig()
+
+    def after(v_mps: float, w_radps: float, seconds: float, kf: KeyframeConfig = cfg) -> bool:
+        acc = OdometryAccumulator(0.0)
+        for k in range(int(round(seconds * 30))):
+            R0, R1 = (Rotation.from_euler("z", w_radps * i / 30).as_matrix() for i in (k, k + 1))
+            acc.push(OdometryStep(k / 30, (k + 1) / 30, v_mps, w_radps, R0, R1, np.array([0.0, 0.0, w_radps])), noise)
+        return keyframe_due(acc, kf)
+
+    assert not after(0.0, 0.0, 5.0)  # standing: no keyframe however long
+    assert after(0.0, 0.0, 5.0, KeyframeConfig(still_m=0.0, still_rad=0.0))  # the guard off: time alone
+    assert not after(0.05, 0.0, 0.5) and after(0.05, 0.0, 1.1)  # 5.5 cm in 1.1 s: time
+    assert after(0.0, 0.01, 1.1)  # turning in place by 0.011 rad: time
+    assert after(0.6, 0.0, 0.9)  # 0.54 m: distance
+
+
+def test_a_rover_turning_in_place_far_from_any_fix_keeps_every_update():
+    """Tens of metres of absolute sigma (a long drive without fixes) and a turn in place: the
+    keyframes the turn starts are joined by sub-millimetre translations, a system GTSAM's Cholesky
+    refuses as indeterminate; the batch goes in with QR, landmark factors and all, and the
+    covariance keeps its size. Driving on, keyframes come every second."""
+    from _synth_stream import make_stream
+
+    from fgslam.runner import run_backend
+    from fgslam.smoother.isam2_backend import Isam2Smoother
+    from reloc.backend import PoseEstimate
+
+    inputs = make_stream(seed=3, duration_s=8.0, speed_mps=0.0)  # the S-curve's yaw rate, no speed
+    cov = np.diag([30.0**2, 30.0**2, 1.0, 1e-4, 1e-4, 0.05**2])
+    sm = Isam2Smoother(PoseEstimate(inputs.initial.t, inputs.initial.T_world_base, cov))
+    run_backend(sm, inputs.measurements)
+    assert sm.n_failed_updates == 0 and len(sm.kfs) >= 3
+    assert sm.estimate().planar_sigma_m > 29.0
+    moving = make_stream(seed=3, duration_s=8.0)
+    sm = Isam2Smoother(PoseEstimate(moving.initial.t, moving.initial.T_world_base, cov))
+    run_backend(sm, moving.measurements)
+    assert sm.n_failed_updates == 0 and len(sm.kfs) >= 7
+
+
+def test_a_batch_cholesky_calls_indeterminate_goes_in_with_qr_whole():
+    """GTSAM's Cholesky "indeterminate" is a heuristic a well-posed batch can trip: the batch is
+    tried again in QR, and the keyframe keeps its landmark factors (before, it went in without
+    them). A batch that fails in QR as well is refused as before (test_smoother_isam2)."""
+    from _synth_stream import make_stream
+
+    from fgslam.smoother.isam2_backend import Isam2Smoother
+    from fgslam.runner import run_backend
+    from fgslam.smoother.config import Factorization
+
+    inputs = make_stream(seed=3, duration_s=12.0)
+    sm = Isam2Smoother(inputs.initial)
+    solver = sm.solver
+    calls = {"n": 0}
+    apply = solver._apply
+
+    def failing_once(graph, values, *args):
+        calls["n"] += 1
+        if calls["n"] == 6 and solver.factorization is Factorization.CHOLESKY:
+            raise RuntimeError("Indeterminate linear system detected while working near variable")
+        return apply(graph, values, *args)
+
+    solver._apply = failing_once
+    run_backend(sm, inputs.measurements)
+    assert calls["n"] > 6
+    assert solver.n_qr_retries == 1 and solver.n_recoveries == 1 and sm.n_failed_updates == 0
+    assert solver.factorization is Factorization.QR  # for its spell
+    rocks = sm.kinds.get("rocks")
+    assert rocks.n_landmarks > 0

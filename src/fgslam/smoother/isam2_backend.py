@@ -290,6 +290,7 @@ class Isam2Smoother(LateFixes, Backend):
                 "latency_p99_ms": float(np.percentile(lat, 99) * 1e3),
                 "n_failed_updates": self.n_failed_updates,
                 "n_recoveries": self.solver.n_recoveries,
+                "n_qr_retries": self.solver.n_qr_retries,
                 "factorization": self.solver.factorization.value,
                 "n_cholesky_returns": self.solver.n_cholesky_returns,
                 **kind_counts,

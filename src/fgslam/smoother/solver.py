@@ -88,6 +88,7 @@ class Solver:
         self._alive: set[int] = set()
         self._new_solver()
         self.n_recoveries = 0
+        self.n_qr_retries = 0  # batches that failed in Cholesky and went in with QR
         self.n_updates = 0
         self.n_cholesky_returns = 0
         self._qr_until: int | None = None  # after a Cholesky failure: QR until this many updates
@@ -209,19 +210,35 @@ class Solver:
         self.n_updates += 1
         n_before = self.factors().size()
         try:
-            if self.fixed_lag:
-                self.ifls.update(graph, values, dict(timestamps or {}), remove)
-                idx = list(self.ifls.getISAM2Result().getNewFactorsIndices())
-            else:
-                res = self.isam.update(graph, values, self._update_params(remove, last_keys))
-                idx = list(res.getNewFactorsIndices())
+            idx = self._apply(graph, values, timestamps, remove, last_keys)
         except (RuntimeError, ValueError) as exc:  # gtsam raises ValueError from its ordering
+            was_cholesky = self.factorization is Factorization.CHOLESKY
             self._recover(n_before, graph.size(), set(values.keys()), str(exc))
-            raise SolverUpdateError(f"iSAM2 update failed and was rolled back: {exc}") from exc
+            if not (was_cholesky and self.factorization is Factorization.QR and not remove):
+                raise SolverUpdateError(f"iSAM2 update failed and was rolled back: {exc}") from exc
+            # Cholesky's "indeterminate" is a heuristic (consecutive pivots 2^12 apart), which a
+            # well-posed system trips where metres of absolute uncertainty meet millimetres of
+            # odometry: the same batch again, in QR, before anything of it is given up
+            n_before = self.factors().size()
+            try:
+                idx = self._apply(graph, values, timestamps, remove, last_keys)
+            except (RuntimeError, ValueError) as exc2:
+                self._recover(n_before, graph.size(), set(values.keys()), str(exc2), qr_retry=True)
+                raise SolverUpdateError(f"iSAM2 update failed, in QR as well, and was rolled back: {exc2}") from exc2
+            self.n_qr_retries += 1
+            log.warning("the failed batch went in with QR (%d factors)", graph.size())
         self._alive |= set(values.keys())
         if self.fixed_lag:
             self._alive = set(self.ifls.timestamps().keys())
         return idx
+
+    def _apply(self, graph, values, timestamps, remove, last_keys) -> list[int]:
+        """One update of the current solver; the indices of the new factors."""
+        if self.fixed_lag:
+            self.ifls.update(graph, values, dict(timestamps or {}), remove)
+            return list(self.ifls.getISAM2Result().getNewFactorsIndices())
+        res = self.isam.update(graph, values, self._update_params(remove, last_keys))
+        return list(res.getNewFactorsIndices())
 
     @staticmethod
     def _update_params(remove: list[int], last_keys: tuple[int, ...]) -> gtsam.ISAM2UpdateParams:
@@ -266,11 +283,13 @@ class Solver:
                 self.on_rebuild({new: old for old, new in back.items()})
         self._maps_since_snapshot = None
 
-    def _recover(self, n_before: int, n_new: int, new_keys: set[int], message: str) -> None:
-        """Rebuild the solver from its graph and linearization point without the failed batch."""
+    def _recover(self, n_before: int, n_new: int, new_keys: set[int], message: str, qr_retry: bool = False) -> None:
+        """Rebuild the solver from its graph and linearization point without the failed batch
+        (``qr_retry``: the batch failed in QR just after failing in Cholesky: the batch is at
+        fault, not the factorization, whose QR spell stays as it is)."""
         self.n_recoveries += 1
         first = next((ln for ln in message.splitlines() if ln.strip()), message)
-        if "ndetermin" in message:  # 4.3 spells it "Indeterminate"
+        if "ndetermin" in message and not qr_retry:  # 4.3 spells it "Indeterminate"
             if self.factorization is Factorization.CHOLESKY:
                 log.warning("Cholesky failed (%s); switching the smoother to QR for %d updates", first, self._qr_spell)
                 self.factorization = Factorization.QR
