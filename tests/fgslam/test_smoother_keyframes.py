@@ -58,30 +58,6 @@ def test_what_the_store_hands_out_cannot_be_written_into_it():
     np.testing.assert_array_equal(kfs.online_T(0), _pose(1)[0])
 
 
-def test_time_alone_starts_a_keyframe_only_once_the_rover_has_moved():
-    from fgslam.smoother.config import KeyframeConfig, OdometryNoiseConfig
-    from fgslam.smoother.keyframes import keyframe_due
-    from fgslam.smoother.odometry_factors import OdometryAccumulator
-    from scipy.spatial.transform import Rotation
-
-    from reloc.odometry import OdometryStep
-
-    cfg, noise = KeyframeConfig(), OdometryNoiseConfig()
-
-    def after(v_mps: float, w_radps: float, seconds: float, kf: KeyframeConfig = cfg) -> bool:
-        acc = OdometryAccumulator(0.0)
-        for k in range(int(round(seconds * 30))):
-            R0, R1 = (Rotation.from_euler("z", w_radps * i / 30).as_matrix() for i in (k, k + 1))
-            acc.push(OdometryStep(k / 30, (k + 1) / 30, v_mps, w_radps, R0, R1, np.array([0.0, 0.0, w_radps])), noise)
-        return keyframe_due(acc, kf)
-
-    assert not after(0.0, 0.0, 5.0)  # standing: no keyframe however long
-    assert after(0.0, 0.0, 5.0, KeyframeConfig(still_m=0.0, still_rad=0.0))  # the guard off: time alone
-    assert not after(0.05, 0.0, 0.5) and after(0.05, 0.0, 1.1)  # 5.5 cm in 1.1 s: time
-    assert after(0.0, 0.01, 1.1)  # turning in place by 0.011 rad: time
-    assert after(0.6, 0.0, 0.9)  # 0.54 m: distance
-
-
 def test_a_rover_turning_in_place_far_from_any_fix_keeps_every_update():
     """Tens of metres of absolute sigma (a long drive without fixes) and a turn in place: the
     keyframes the turn starts are joined by sub-millimetre translations, a system GTSAM's Cholesky

@@ -29,20 +29,11 @@ class Factorization(str, Enum):
 @dataclass(frozen=True)
 @checked(SmootherError)
 class KeyframeConfig:
-    """When to start a new keyframe: whichever of distance, heading change or time comes first;
-    time alone only once the rover has moved ``still_m`` or turned ``still_rad``.
-
-    A rover standing still adds no keyframe: a chain of keyframes joined by its sub-millimetre
-    odometry, beside metres of absolute uncertainty after a kilometre without fixes, is a system
-    whose Cholesky pivots span more than GTSAM's 2^12 and which it refuses as indeterminate (the
-    keyframe then went in without its landmark factors, and a QR spell followed: a 4 s stop 5108 s
-    into cratered-3km without fixes)."""
+    """When to start a new keyframe: whichever of distance, heading change or time comes first."""
 
     distance_m: Positive = 0.5
     yaw_rad: Positive = 0.2
     interval_s: Positive = 1.0
-    still_m: NonNegative = 0.01  # 0 with still_rad 0: time alone starts a keyframe, standing or not
-    still_rad: NonNegative = 0.005
 
 
 @dataclass(frozen=True)

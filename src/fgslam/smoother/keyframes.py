@@ -13,12 +13,12 @@ _POSE_COV = 16 + 36  # a row: T_world_base (4, 4) then its covariance (6, 6), bo
 
 
 def keyframe_due(acc: OdometryAccumulator, cfg: KeyframeConfig) -> bool:
-    """Whether the motion since the last keyframe calls for a new one (distance, yaw, or time
-    once the rover has moved; see :class:`KeyframeConfig`)."""
-    yaw = acc.yaw_change_rad()
-    if acc.distance_m >= cfg.distance_m or yaw >= cfg.yaw_rad:
-        return True
-    return acc.t_now - acc.t_kf >= cfg.interval_s and (acc.distance_m >= cfg.still_m or yaw >= cfg.still_rad)
+    """Whether the motion since the last keyframe calls for a new one (distance, yaw or time)."""
+    return (
+        acc.distance_m >= cfg.distance_m
+        or acc.yaw_change_rad() >= cfg.yaw_rad
+        or acc.t_now - acc.t_kf >= cfg.interval_s
+    )
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
