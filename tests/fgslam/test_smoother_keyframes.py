@@ -87,9 +87,9 @@ def test_a_batch_cholesky_calls_indeterminate_goes_in_with_qr_whole():
     them). A batch that fails in QR as well is refused as before (test_smoother_isam2)."""
     from _synth_stream import make_stream
 
-    from fgslam.smoother.isam2_backend import Isam2Smoother
     from fgslam.runner import run_backend
     from fgslam.smoother.config import Factorization
+    from fgslam.smoother.isam2_backend import Isam2Smoother
 
     inputs = make_stream(seed=3, duration_s=12.0)
     sm = Isam2Smoother(inputs.initial)

@@ -103,7 +103,7 @@ class Reanchoring(Backend):
         self.name = self.inner.name
         self.config = self.inner.config
         self._history: deque[PoseEstimate] = deque()
-        self._past: list[Trajectory] = []  # trajectories before each re-anchoring, moved by its D
+        self._past: list[Trajectory] = []  # the path before the latest re-anchoring (earlier ones in it), moved
         self.reanchors: list[dict] = []
 
     @property
@@ -168,7 +168,8 @@ class Reanchoring(Backend):
         return self.inner.landmark_map(kind)
 
     def trajectory(self) -> Trajectory:
-        """The trajectories before each re-anchoring (moved by it), then the current back-end's."""
+        """The path before the latest re-anchoring (moved by each), then the current back-end's
+        (with the anchor's uncertainty while lost)."""
         cur = self.inner.trajectory()
         if self._anchor is not None and cur.cov is not None and len(cur):
             cur = Trajectory(cur.t, cur.T_world_base, cur.cov + anchor_cov(self._anchor, self._p0, cur.T_world_base[:, :3, 3]))
