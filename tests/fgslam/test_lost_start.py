@@ -108,7 +108,7 @@ def test_the_anchor_covariance_is_the_start_uncertainty_carried_to_each_pose():
         assert np.allclose(C[3:5, :], 0.0) and np.allclose(C[:, 3:5], 0.0)
 
 
-def test_a_known_start_is_passed_through_unchanged():
+def test_a_lost_start_splits_into_a_known_start_and_its_anchor_and_a_known_one_is_not_wrapped():
     inputs = make_stream(seed=3, duration_s=2.0)
     lost = PoseEstimate(inputs.initial.t, inputs.initial.T_world_base,
                         np.diag([30.0**2, 30.0**2, 1.0, 1e-4, 1e-4, 0.3**2]))

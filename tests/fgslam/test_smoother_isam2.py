@@ -288,6 +288,58 @@ def test_a_cholesky_return_that_fails_keeps_qr_for_a_longer_spell(short_run):
     assert ate_m(short_run, tr.t, tr.T_world_base) < 0.3
 
 
+def test_a_rover_turning_in_place_far_from_any_fix_keeps_every_update():
+    """Tens of metres of absolute sigma (a long drive without fixes) and a turn in place: the
+    keyframes the turn starts are joined by sub-millimetre translations, a system GTSAM's Cholesky
+    refuses as indeterminate; the batch goes in with QR, landmark factors and all, and the
+    covariance keeps its size. Driving on, keyframes come every second."""
+    from _synth_stream import make_stream
+
+    from fgslam.runner import run_backend
+    from reloc.backend import PoseEstimate
+
+    inputs = make_stream(seed=3, duration_s=8.0, speed_mps=0.0)  # the S-curve's yaw rate, no speed
+    cov = np.diag([30.0**2, 30.0**2, 1.0, 1e-4, 1e-4, 0.05**2])
+    sm = Isam2Smoother(PoseEstimate(inputs.initial.t, inputs.initial.T_world_base, cov))
+    run_backend(sm, inputs.measurements)
+    assert sm.n_failed_updates == 0 and len(sm.kfs) >= 3
+    assert sm.estimate().planar_sigma_m > 29.0
+    moving = make_stream(seed=3, duration_s=8.0)
+    sm = Isam2Smoother(PoseEstimate(moving.initial.t, moving.initial.T_world_base, cov))
+    run_backend(sm, moving.measurements)
+    assert sm.n_failed_updates == 0 and len(sm.kfs) >= 7
+
+
+def test_a_batch_cholesky_calls_indeterminate_goes_in_with_qr_whole():
+    """GTSAM's Cholesky "indeterminate" is a heuristic a well-posed batch can trip: the batch is
+    tried again in QR, and the keyframe keeps its landmark factors (before, it went in without
+    them). A batch that fails in QR as well is refused as before
+    (test_failed_updates_leave_the_solver_usable)."""
+    from _synth_stream import make_stream
+
+    from fgslam.runner import run_backend
+
+    inputs = make_stream(seed=3, duration_s=12.0)
+    sm = Isam2Smoother(inputs.initial)
+    solver = sm.solver
+    calls = {"n": 0}
+    apply = solver._apply
+
+    def failing_once(graph, values, *args):
+        calls["n"] += 1
+        if calls["n"] == 6 and solver.factorization is Factorization.CHOLESKY:
+            raise RuntimeError("Indeterminate linear system detected while working near variable")
+        return apply(graph, values, *args)
+
+    solver._apply = failing_once
+    run_backend(sm, inputs.measurements)
+    assert calls["n"] > 6
+    assert solver.n_qr_retries == 1 and solver.n_recoveries == 1 and sm.n_failed_updates == 0
+    assert solver.factorization is Factorization.QR  # for its spell
+    rocks = sm.kinds.get("rocks")
+    assert rocks.n_landmarks > 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 5])
 def test_consistency_nees_and_3sigma_envelope(seed):
