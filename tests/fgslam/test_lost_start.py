@@ -16,7 +16,7 @@ from fgslam.fix_sources import OnlineFixes
 from fgslam.relocalizer import Relocalizer
 from fgslam.runner import ground_truth_trajectory, run_backend
 from reloc.backend import PoseEstimate
-from reloc.measurements import GroundTruthPose
+from reloc.measurements import GlobalFix, GroundTruthPose
 
 
 def test_planar_motion_takes_one_pose_onto_another():
@@ -117,3 +117,31 @@ def test_a_lost_start_splits_into_a_known_start_and_its_anchor_and_a_known_one_i
     assert np.allclose(np.diag(anchor), [30.0**2 - 1e-4, 30.0**2 - 1e-4, 1.0 - 1e-4, 0.3**2 - 0.002**2])
     be = make_backend("ekf", inputs.initial)
     assert not isinstance(be, Reanchoring)
+
+
+@pytest.mark.parametrize("backend", ["ekf", "isam2"])
+def test_a_reanchoring_far_from_the_start_adds_only_the_odometry_since_t_meas(backend):
+    """Re-anchored at a fix measured 2 s before it arrives, the back-end's new covariance is the
+    fix's plus the odometry's growth over those 2 s, taken from the wrapped back-end's own
+    estimates: not the start's yaw uncertainty swinging a pose tens of metres out (the anchor's
+    lever arm, ~(0.52 rad x 10 m)^2 of variance), which the fix replaces."""
+    inputs = make_stream(seed=3, duration_s=60.0)
+    cov = np.diag([50.0**2, 50.0**2, 0.01**2, 1e-4, 1e-4, 0.52**2])
+    be = make_backend(backend, PoseEstimate(inputs.initial.t, inputs.initial.T_world_base, cov))
+    run_backend(be, [m for m in inputs.measurements if m.t <= 45.0])
+    traj = be.inner.trajectory()
+    k = int(np.searchsorted(traj.t, traj.t[-1] - 2.0))
+    t_meas, then_cov = float(traj.t[k]), traj.cov[k]
+    now_inner, now = be.inner.estimate(), be.estimate()
+    assert np.linalg.norm(now.position_m[:2] - inputs.initial.T_world_base[:2, 3]) > 8.0
+    assert be.lost and np.sqrt(now.cov[0, 0] + now.cov[1, 1]) > 50.0
+    pose = traj.T_world_base[k]
+    yaw = float(np.arctan2(pose[1, 0], pose[0, 0]))
+    fix_cov = np.diag([0.3**2, 0.3**2, 0.02**2])
+    out = be.apply_fix(GlobalFix(t_meas, now.t, pose[0, 3] + 1.0, pose[1, 3] - 2.0, yaw + 0.1, fix_cov))
+    assert out.accepted and out.reason.startswith("re-anchored") and not be.lost
+    growth = np.diag(now_inner.cov) - np.diag(then_cov)
+    assert np.all(growth[[0, 1, 5]] >= -1e-12) and np.all(growth[[0, 1]] < 0.01)
+    got = be.inner.estimate().cov
+    assert got[0, 0] + got[1, 1] == pytest.approx(fix_cov[0, 0] + fix_cov[1, 1] + growth[0] + growth[1], rel=0.05)
+    assert got[5, 5] == pytest.approx(fix_cov[2, 2] + growth[5], rel=0.05)

@@ -6,7 +6,8 @@ smoother's robust kernel both assume the fix is near the estimate. The relocaliz
 whole catalog while the estimate is lost (``RelocalizerConfig.lost_sigma_m``); the first fix it
 finds re-anchors the back-end: the planar rigid motion ``D`` that takes the estimate at the fix's
 ``t_meas`` onto the fix is applied to the current estimate, and the back-end starts anew there,
-its covariance the fix's plus the odometry's growth since ``t_meas``. Its past (the trajectory
+its covariance the fix's plus the odometry's growth since ``t_meas`` (the wrapped back-end's own,
+not the anchor's: the fix replaces the start's uncertainty). Its past (the trajectory
 before the fix) is moved by the same ``D``. Afterwards the fixes take the prior-guided path and
 reach the back-end as usual.
 
@@ -120,7 +121,7 @@ class Reanchoring(Backend):
     def predict(self, step) -> None:
         self.inner.predict(step)
         if not self.reanchors:  # only while lost: the estimates a late first fix is placed on
-            est = self.estimate()
+            est = self.inner.estimate()  # the wrapped back-end's own: relative to the start, no anchor
             self._history.append(est)
             while self._history and self._history[0].t < est.t - HISTORY_S:
                 self._history.popleft()
@@ -137,11 +138,13 @@ class Reanchoring(Backend):
         then = self._at(fix.t_meas)
         if then is None:
             return FixOutcome(fix, False, "lost, and t_meas is older than the pose history kept while lost")
-        now = self.estimate()
+        now = self.inner.estimate()
         D = planar_motion(np.array([then.position_m[0], then.position_m[1], then.yaw_rad]), fix.xyyaw)
         T = D @ now.T_world_base
         cov = known_start_cov()
-        growth = np.clip(np.diag(now.cov) - np.diag(then.cov), 0.0, None)  # odometry since t_meas
+        # the odometry's growth since t_meas, from the wrapped back-end's own estimates: the anchor's
+        # lever arm (the start's yaw swinging a pose far from the start) is what the fix replaces
+        growth = np.clip(np.diag(now.cov) - np.diag(then.cov), 0.0, None)
         sel = np.ix_([0, 1, 5], [0, 1, 5])
         cov[sel] = np.asarray(fix.cov_xyyaw) + np.diag(growth[[0, 1, 5]])
         past = self.trajectory()
