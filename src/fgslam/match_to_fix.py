@@ -97,6 +97,17 @@ def fix_from_similarity(
     )
 
 
+def distance_correlation_scale(distance_m: float, length_m: float) -> float:
+    """Covariance multiplier of a fix made ``distance_m`` of path after the previous one, when the
+    fixes' errors are a first-order Gauss-Markov process along the path (correlation
+    ``rho = exp(-d / length_m)``: the catalog errors of the landmarks two fixes share) and a
+    back-end fuses them as independent: ``(1 + rho) / (1 - rho)``, the variance of the mean of
+    such a sequence over that of as many independent fixes. A fix at the same place (``d`` -> 0)
+    adds almost nothing; ``d`` is floored at 1 % of the length (a multiplier of ~200)."""
+    rho = float(np.exp(-max(float(distance_m), 0.01 * length_m) / length_m))
+    return (1.0 + rho) / (1.0 - rho)
+
+
 def rover_weighted_fit(
     local_xy: np.ndarray, world_xy: np.ndarray, rover_xy: np.ndarray, radius_m: float, floor_sigma_m: float
 ):

@@ -30,6 +30,7 @@ import numpy as np
 
 from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
+    distance_correlation_scale,
     fix_from_similarity,
     fix_from_single,
     identify_single,
@@ -124,6 +125,8 @@ class Relocalizer:
         self.min_size_m = float(self.config.min_size_fraction * np.quantile(sizes, 0.01)) if sizes.size else 0.0
         self._fix_times: list[float] = []
         self._last_xyyaw: np.ndarray | None = None  # pose of the last attempt
+        self._path_m = 0.0  # planar path between the attempts' poses, summed
+        self._fix_path_m: float | None = None  # _path_m at the last fix
         self._fresh = StaleMapCheck(self.config.min_new_observations)
         self._misses = 0  # consecutive attempts that matched nothing (the period's backoff)
         self._rock_uses = np.zeros(len(catalog.xy_m), dtype=np.int64)  # fixes that used each catalog rock
@@ -169,6 +172,8 @@ class Relocalizer:
     def _attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:
         cfg = self.config
         est_xyyaw = np.array([est.position_m[0], est.position_m[1], est.yaw_rad])
+        if self._last_xyyaw is not None:  # the path driven, as the attempts see it (correlation "distance")
+            self._path_m += float(np.hypot(*(est_xyyaw[:2] - self._last_xyyaw[:2])))
         self._last_xyyaw = est_xyyaw
         if self._fresh.stale(lmap):
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
@@ -223,8 +228,7 @@ class Relocalizer:
             )
         except RelocalizerError as exc:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
-        self._fix_times.append(est.t)
-        np.add.at(self._rock_uses, np.unique(pairs[:, 1]), 1)
+        self._note_fix(est.t, pairs[:, 1])
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
 
     def _single(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
@@ -256,8 +260,7 @@ class Relocalizer:
         latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_m,
                               t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])))
-        self._fix_times.append(est.t)
-        self._rock_uses[hit.row] += 1
+        self._note_fix(est.t, np.array([hit.row]))
         log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
                   hit.false_alarm)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy[None, :], c_xy[None, :], est_xyyaw,
@@ -304,6 +307,11 @@ class Relocalizer:
             self._crops.pop(next(iter(self._crops)))
         return hit
 
+    def _note_fix(self, t: float, catalog_rows: np.ndarray) -> None:
+        self._fix_times.append(t)
+        np.add.at(self._rock_uses, np.unique(catalog_rows), 1)
+        self._fix_path_m = self._path_m
+
     def _correlation_scale(self, t: float, catalog_rows: np.ndarray) -> float:
         """Covariance multiplier of a fix at ``t`` whose inliers are catalog rocks ``catalog_rows``
         (see ``RelocalizerConfig.correlation``)."""
@@ -313,4 +321,6 @@ class Relocalizer:
         if cfg.correlation == "window" and cfg.correlation_window_s > 0:
             w = cfg.correlation_window_s
             return 1.0 + sum(1 for tf in self._fix_times if t - w <= tf < t)
+        if cfg.correlation == "distance" and self._fix_path_m is not None:
+            return distance_correlation_scale(self._path_m - self._fix_path_m, cfg.correlation_length_m)
         return 1.0

@@ -85,9 +85,13 @@ class RelocalizerConfig:
     # covariance is multiplied by 1 + the mean, over its inlier catalog rocks, of how many earlier
     # fixes used that rock (sum over earlier fixes of the fraction of rocks shared with them; for
     # fixes on the same rocks the covariance-intersection bound, whenever they were made).
-    # "window": 1 + number of fixes produced in the preceding correlation_window_s. "none": 1.
-    correlation: Literal["rocks", "window", "none"] = "rocks"
+    # "window": 1 + number of fixes produced in the preceding correlation_window_s. "distance":
+    # the fixes' errors as a Gauss-Markov process along the path, correlation exp(-d / L) between
+    # fixes d metres of path apart, L = correlation_length_m: (1 + rho) / (1 - rho) with rho at the
+    # path since the previous fix (fgslam.match_to_fix.distance_correlation_scale). "none": 1.
+    correlation: Literal["rocks", "window", "distance", "none"] = "rocks"
     correlation_window_s: Positive = 60.0
+    correlation_length_m: Positive = 15.0
     prior_sigmas: Positive | None = 6.0
     prior_min_radius_m: NonNegative = 3.0
     # an estimate whose largest planar sigma exceeds this is lost: its map is matched against the

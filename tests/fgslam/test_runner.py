@@ -10,6 +10,7 @@ from fgslam import metrics as M
 from fgslam.backends import DeadReckoning, DeadReckoningConfig, make_backend
 from fgslam.fix_sources import FedFixes, OnlineFixes, ReplayedFixes
 from fgslam.inputs import truth_of
+from fgslam.match_to_fix import distance_correlation_scale
 from fgslam.relocalizer import (
     Relocalizer,
     RelocalizerConfig,
@@ -198,6 +199,40 @@ def test_fixes_on_shared_catalog_rocks_are_deweighted_whenever_they_were_made(st
     assert fresh._correlation_scale(0.0, rows) == pytest.approx(1.0 + 3.0 * (rows.size // 2) / rows.size)
     with pytest.raises(RelocalizerError, match="correlation"):
         RelocalizerConfig(correlation="time")
+
+
+def test_distance_correlation_scale_is_the_variance_of_the_mean_of_gauss_markov_fixes():
+    """Fixes d metres apart whose errors correlate as exp(-d / L), fused as independent with
+    their covariance times the scale, give the variance the mean of such a sequence has."""
+    rng = np.random.default_rng(5)
+    L, d, n, runs = 15.0, 1.2, 1500, 3000
+    rho = np.exp(-d / L)
+    e = np.empty((runs, n))
+    e[:, 0] = rng.standard_normal(runs)
+    w = np.sqrt(1.0 - rho**2) * rng.standard_normal((runs, n))
+    for k in range(1, n):
+        e[:, k] = rho * e[:, k - 1] + w[:, k]
+    fused_var = distance_correlation_scale(d, L) / n  # n independent fixes of variance 1 x scale
+    assert np.var(e.mean(axis=1)) == pytest.approx(fused_var, rel=0.08)
+    assert distance_correlation_scale(10.0 * L, L) == pytest.approx(1.0, abs=1e-3)  # far apart: independent
+    assert distance_correlation_scale(0.0, L) == pytest.approx(distance_correlation_scale(0.01 * L, L))  # floored
+
+
+def test_fixes_are_deweighted_by_the_path_since_the_previous_one(stream):
+    """correlation "distance": a fix on the same place again adds almost nothing (the scale at the
+    floor), one 10 correlation lengths further on counts as independent."""
+    lmap, est = _map_and_pose(stream)
+    cfg = RelocalizerConfig(correlation="distance", correlation_length_m=2.0, min_landmarks=5, min_new_observations=0)
+    reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
+    a1 = reloc.attempt(lmap, est)
+    a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
+    T = est.T_world_base.copy()
+    T[0, 3] += 20.0  # attempts on the way: the path is summed between attempts
+    reloc.attempt(LandmarkMap.empty("rocks"), PoseEstimate(est.t + 50.0, T, est.cov))
+    a3 = reloc.attempt(lmap, PoseEstimate(est.t + 100.0, est.T_world_base, est.cov))
+    assert a1.status == a2.status == a3.status == "fix"
+    assert np.allclose(a2.fix.cov_xyyaw, distance_correlation_scale(0.0, 2.0) * a1.fix.cov_xyyaw)
+    assert np.allclose(a3.fix.cov_xyyaw, a1.fix.cov_xyyaw, rtol=1e-3)  # 40 m of path: 20 lengths
 
 
 def test_nearby_attempts_share_one_catalog_crop_and_its_fix(stream):
