@@ -233,6 +233,9 @@ def test_fixes_are_deweighted_by_the_path_since_the_previous_one(stream):
     assert a1.status == a2.status == a3.status == "fix"
     assert np.allclose(a2.fix.cov_xyyaw, distance_correlation_scale(0.0, 2.0) * a1.fix.cov_xyyaw)
     assert np.allclose(a3.fix.cov_xyyaw, a1.fix.cov_xyyaw, rtol=1e-3)  # 40 m of path: 20 lengths
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(RelocalizerError, match="correlation_length_m"):
+            RelocalizerConfig(correlation="distance", correlation_length_m=bad)
 
 
 def test_nearby_attempts_share_one_catalog_crop_and_its_fix(stream):
