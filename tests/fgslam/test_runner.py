@@ -220,7 +220,7 @@ def test_distance_correlation_scale_is_the_variance_of_the_mean_of_gauss_markov_
 
 def test_fixes_are_deweighted_by_the_path_since_the_previous_one(stream):
     """correlation "distance": a fix on the same place again adds almost nothing (the scale at the
-    floor), one 10 correlation lengths further on counts as independent."""
+    floor), one 20 correlation lengths further on counts as independent."""
     lmap, est = _map_and_pose(stream)
     cfg = RelocalizerConfig(correlation="distance", correlation_length_m=2.0, min_landmarks=5, min_new_observations=0)
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
