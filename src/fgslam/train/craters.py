@@ -116,13 +116,16 @@ def train_craters(scenes: list[dict], *, iters: int, batch: int, crop: int, lr: 
     of ``scenes``; returns (net, loss history) as :func:`fgslam.train.detector.fit`."""
     import torch
 
-    from fgslam.train.detector import fit, load_weights, stack_targets
+    from fgslam.train.detector import fit, load_onnx_weights, load_weights, stack_targets
     from fgslam.train.model import DetectorNet
     from fgslam.train.targets import centre_targets
 
     torch.manual_seed(seed)
     rng = np.random.default_rng([seed, 41])
-    net = load_weights(init) if init is not None else DetectorNet(**(arch or ARCH))
+    if init is None:
+        net = DetectorNet(**(arch or ARCH))
+    else:
+        net = load_onnx_weights(init) if Path(init).suffix == ".onnx" else load_weights(init)
     stride = net.out_stride
 
     def next_batch():

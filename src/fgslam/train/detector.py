@@ -110,6 +110,62 @@ def load_weights(path: Path):
         arch, state = {"out_stride": 2 if "fuse1.0.weight" in obj else 4}, obj
     net = RockNet(**arch)
     net.load_state_dict(state)
+    if obj.get("frozen_bn", False):
+        net.frozen_bn = True
+    return net
+
+
+def load_onnx_weights(path: Path):
+    """A :class:`DetectorNet` holding the weights of an exported model (``path``, .onnx), for
+    fine-tuning a shipped model whose .pt is not at hand. The exporter folds each batch norm into
+    the convolution before it, so the net gets the folded weights and batch norms that are the
+    identity (mean 0, variance 1 - eps, scale 1, shift the folded bias) and frozen
+    (``net.frozen_bn``: :func:`fit` keeps them in eval mode; their scale and shift still train);
+    its output equals the model's. The architecture comes from the model's ``train_info``."""
+    import onnx
+    import torch
+    from onnx import numpy_helper
+
+    from fgslam.train.model import DetectorNet
+
+    model = onnx.load(str(path))
+    meta = {p.key: p.value for p in model.metadata_props}
+    try:
+        arch = json.loads(meta["train_info"])["arch"]
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: no architecture in the model's train_info metadata ({exc})") from exc
+    arch = {k: tuple(v) if isinstance(v, list) else v for k, v in arch.items()}
+    net = DetectorNet(**arch)
+    inits = {i.name: np.array(numpy_helper.to_array(i)) for i in model.graph.initializer}
+    modules = dict(net.named_modules())
+    seen = set()
+    for node in model.graph.node:
+        if node.op_type != "Conv":
+            continue
+        parts = node.name.strip("/").split("/")  # /net/s2/s2.1/s2.1.0/Conv -> module s2.1.0
+        if len(parts) < 3 or parts[0] != "net" or parts[-2] not in modules:
+            raise ValueError(f"{path}: convolution {node.name!r} has no module in {arch}")
+        name = parts[-2]
+        conv = modules[name]
+        w, b = inits[node.input[1]], inits[node.input[2]]
+        if tuple(conv.weight.shape) != w.shape:
+            raise ValueError(f"{path}: {name} weight {w.shape} against {tuple(conv.weight.shape)}")
+        parent, _, idx = name.rpartition(".")
+        bn = modules.get(f"{parent}.{int(idx) + 1}") if idx.isdigit() else None
+        with torch.no_grad():
+            conv.weight.copy_(torch.from_numpy(w))
+            if isinstance(bn, torch.nn.BatchNorm2d):
+                bn.weight.fill_(1.0)
+                bn.bias.copy_(torch.from_numpy(b))
+                bn.running_mean.zero_()
+                bn.running_var.fill_(1.0 - bn.eps)
+            else:
+                conv.bias.copy_(torch.from_numpy(b))
+        seen.add(name)
+    convs = {n for n, m in modules.items() if isinstance(m, torch.nn.Conv2d)}
+    if seen != convs:
+        raise ValueError(f"{path}: convolutions without weights in the model: {sorted(convs - seen)}")
+    net.frozen_bn = True
     return net
 
 
@@ -117,7 +173,8 @@ def save_weights(net, path: Path) -> None:
     """Save ``net``'s architecture and weights (.pt) for :func:`load_weights`."""
     import torch
 
-    torch.save({"arch": dict(net.arch), "state": net.state_dict()}, path)
+    torch.save({"arch": dict(net.arch), "state": net.state_dict(), "frozen_bn": bool(getattr(net, "frozen_bn", False))},
+               path)
 
 
 def fit(net, next_batch, *, iters: int, lr: float, device: str, budget_s: float | None = None,
@@ -140,6 +197,10 @@ def fit(net, next_batch, *, iters: int, lr: float, device: str, budget_s: float 
     history = []
     t0 = time.perf_counter()
     net.train()
+    if getattr(net, "frozen_bn", False):  # folded weights (load_onnx_weights): statistics stay
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.eval()
     it = 0
     while (it < iters) if budget_s is None else (time.perf_counter() - t0 < budget_s):
         progress = it / iters if budget_s is None else (time.perf_counter() - t0) / budget_s
@@ -289,7 +350,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="CPU threads (ignored on CUDA)")
     ap.add_argument("--cache", type=Path, default=None, help=".npz cache of the rendered set")
     ap.add_argument("--render-only", action="store_true", help="only render the set into --cache")
-    ap.add_argument("--init", type=Path, default=None, help="start from these weights (.pt)")
+    ap.add_argument("--init", type=Path, default=None,
+                    help="start from these weights: .pt, or an exported .onnx model (batch norms folded, kept frozen)")
     ap.add_argument("--val-images", type=int, default=40, help="rendered validation images for the threshold")
     ap.add_argument("--target-precision", type=float, default=None,
                     help="operating precision (default: the widest margin to the kind's precision and recall goals)")
