@@ -37,7 +37,7 @@ class CraterEkfConfig:
     """The crater update's settings (``EkfConfig.kinds["craters"]``)."""
 
     association: AssociationConfig = field(default_factory=lambda: AssociationConfig(
-        max_range_m=30.0, max_size_ratio=1.6))  # rims are fitted out to 25 m; diameters to ~10 %
+        max_range_m=30.0, max_size_ratio=1.6, persistence_s=0.0))  # rims are fitted out to 25 m; diameters to ~10 %
     cov_scale: Positive = 1.0  # the reported rim-centre covariance is multiplied by this
     period_s: NonNegative = 1.0  # crater frames closer than this to the last used one are skipped
     candidate_margin_m: NonNegative = 5.0

@@ -86,7 +86,8 @@ class RockUpdate:
         self.code = kind_code(kind.name)
         self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
                        "n_jc_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0, "n_forgotten": 0,
-                       "n_budget_skipped": 0, "n_budget_new_skipped": 0, "n_lone_pairs_skipped": 0}
+                       "n_budget_skipped": 0, "n_budget_new_skipped": 0, "n_lone_pairs_skipped": 0,
+                       "n_not_persistent": 0, "n_first_sightings": 0}
 
     def _bump(self, count: bool, **kw: int) -> None:
         if count:
@@ -157,6 +158,14 @@ class RockUpdate:
 
         assoc = associate(z, Rz, zhat, S_hat, cfg.association, size, s.book.size_m[cand], joint_cov)
         det, ci = assoc.pairs
+        a_cfg = cfg.association
+        n_not_persistent = 0
+        if det.size and a_cfg.persistence_s > 0:  # clutter inside a gate: not seen there before
+            xw, cw = point_to_world(s.R_world_base, s.p_world, z[det], Rz[det])
+            ok = s.recent.confirm(s.book.ids[cand[ci]], obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
+                                  a_cfg.persistence_slack_m)
+            n_not_persistent = int(det.size - ok.sum())
+            det, ci = det[ok], ci[ok]
         n_lone = 0
         if cfg.skip_lone_ambiguous_pair and det.size == 1 and assoc.n_ambiguous > 0:
             det, ci, n_lone = det[:0], ci[:0], 1
@@ -177,8 +186,16 @@ class RockUpdate:
         else:
             n_used = 0
 
-        # hygiene and the bound first, so the state never exceeds max_landmarks
+        # a new landmark only from a second sighting at the same place (first sightings wait)
         new = np.flatnonzero(assoc.is_new)
+        n_first = 0
+        if new.size and a_cfg.persistence_s > 0:
+            xw, cw = point_to_world(s.R_world_base, s.p_world, z[new], Rz[new])
+            again = s.pending_for(self.code).confirm(obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
+                                                     a_cfg.persistence_slack_m)
+            n_first = int(new.size - again.sum())
+            new = new[again]
+        # hygiene and the bound first, so the state never exceeds max_landmarks
         stale = s.book.stale(obs.t)
         protect = stale.copy()
         protect[rows] = True
@@ -201,11 +218,14 @@ class RockUpdate:
                 G_pose = np.concatenate([G_pose, G_cal], axis=2)
             G_pose = s.pad_head(G_pose)
             s.append_landmarks(l_new, G_pose, cov_w)
-            s.book.add(obs.t, size[new], self.code)
+            new_ids = s.book.add(obs.t, size[new], self.code, n_obs=2 if a_cfg.persistence_s > 0 else 1)
+            if a_cfg.persistence_s > 0:
+                s.recent.record(new_ids, obs.t, l_new, cov_w)
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
                    n_jc_dropped=assoc.n_jc_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(), n_forgotten=far.sum(),
                    n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size,
-                   n_lone_pairs_skipped=n_lone)
+                   n_lone_pairs_skipped=n_lone, n_not_persistent=n_not_persistent,
+                   n_first_sightings=n_first)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
 
     def _counts(self, s: FilterState, keep: np.ndarray | None = None) -> dict[int, int]:

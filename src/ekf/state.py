@@ -21,6 +21,7 @@ import numpy as np
 
 from reloc.geometry import exp_so3, project_so3
 from reloc.landmark_book import LandmarkBook
+from reloc.persistence import PendingDetections, RecentDetections
 
 POSE_DIM = 6
 CALIB_DIM = 4  # rotation error (3) and range scale (1) of the stereo measurements
@@ -75,6 +76,8 @@ class FilterState:
     # about world z) and gains no yaw information from landmarks alone. None: off.
     p_lin: np.ndarray | None = None  # (3,)
     l_lin: np.ndarray | None = None  # (n, 3)
+    recent: RecentDetections = field(default_factory=RecentDetections)  # landmarks' recent detections (persistence)
+    pending: dict = field(default_factory=dict)  # kind code -> PendingDetections: first sightings (persistence)
 
     @property
     def calibrated(self) -> bool:
@@ -118,6 +121,8 @@ class FilterState:
             calib_s=self.calib_s,
             p_lin=None if self.p_lin is None else self.p_lin.copy(),
             l_lin=None if self.l_lin is None else self.l_lin.copy(),
+            recent=self.recent.copy(),
+            pending={code: p.copy() for code, p in self.pending.items()},
         )
 
     def inject(self, dx: np.ndarray) -> None:
@@ -240,6 +245,10 @@ class FilterState:
         if self.l_lin is not None:  # initialised from the pose's first estimate (same measurement)
             self.l_lin = np.vstack([self.l_lin, l_new - (self.p_world - self.p_lin)])
         self.l_world = np.vstack([self.l_world, l_new])
+
+    def pending_for(self, code: int) -> PendingDetections:
+        """The first sightings of kind ``code`` (created on first use)."""
+        return self.pending.setdefault(code, PendingDetections())
 
     def keep_landmarks(self, keep: np.ndarray) -> None:
         """Marginalise out the landmarks where ``keep`` (n,) is False (drop their rows/columns)."""

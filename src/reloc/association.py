@@ -24,7 +24,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
-from reloc.config import Ge, Interval, Positive, checked
+from reloc.config import Ge, Interval, NonNegative, Positive, checked
 from reloc.errors import MeasurementError
 
 _NO_MATCH = 1e12
@@ -53,6 +53,13 @@ class AssociationConfig:
     # wide gates of the old landmarks, and a lone pair has no joint test to fail)
     min_pairs_uncertain: Annotated[int, Ge(1)] = 3
     uncertain_ratio: Positive = 16.0  # 4 sigma: 4.0 (2 sigma) dropped sparse cnes pairs in normal running (EKF ATE 0.056 -> 0.078 m)
+    # temporal persistence (reloc.persistence, applied by the back-ends after associate): a pair is
+    # used only when its landmark had a detection at the same world position (within gate_chi2 on
+    # the two detections' covariances plus persistence_slack_m per axis) in the persistence_s
+    # seconds before; clutter inside a gate seldom has one. 0: off. Set to span two or three of
+    # the back-end's frames (the EKF takes rock frames at 2 Hz; the smoother at 1 Hz)
+    persistence_s: NonNegative = 1.6
+    persistence_slack_m: NonNegative = 0.02
 
 
 @dataclass(frozen=True)

@@ -63,9 +63,10 @@ class LandmarkBook:
         """(N,) mean observed diameter in metres."""
         return self.size_sum_m / np.maximum(self.n_obs, 1)
 
-    def add(self, t: float, size_m: np.ndarray, kind: int = 0) -> np.ndarray:
-        """Append ``len(size_m)`` tentative landmarks of kind code ``kind`` first seen at ``t``;
-        returns their ids (k,)."""
+    def add(self, t: float, size_m: np.ndarray, kind: int = 0, n_obs: int = 1) -> np.ndarray:
+        """Append ``len(size_m)`` tentative landmarks of kind code ``kind`` first seen at ``t``
+        (``n_obs`` sightings of that size each: a landmark started from a first sighting and its
+        repetition counts both); returns their ids (k,)."""
         size_m = np.reshape(np.asarray(size_m, dtype=float), (-1,))
         k = size_m.shape[0]
         new_ids = np.arange(self.next_id, self.next_id + k)
@@ -73,9 +74,9 @@ class LandmarkBook:
         self.ids = np.concatenate([self.ids, new_ids])
         self.t_first = np.concatenate([self.t_first, np.full(k, t)])
         self.t_last = np.concatenate([self.t_last, np.full(k, t)])
-        self.n_obs = np.concatenate([self.n_obs, np.ones(k, dtype=int)])
-        self.size_sum_m = np.concatenate([self.size_sum_m, size_m])
-        self.confirmed = np.concatenate([self.confirmed, np.full(k, self.config.confirm_n_obs <= 1)])
+        self.n_obs = np.concatenate([self.n_obs, np.full(k, n_obs, dtype=int)])
+        self.size_sum_m = np.concatenate([self.size_sum_m, n_obs * size_m])
+        self.confirmed = np.concatenate([self.confirmed, np.full(k, self.config.confirm_n_obs <= n_obs)])
         self.kind = np.concatenate([self.kind, np.full(k, kind, dtype=np.int16)])
         return new_ids
 

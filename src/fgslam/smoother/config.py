@@ -81,7 +81,8 @@ class OdometryNoiseConfig:
 class LandmarkConfig:
     """Rock landmarks: association, insertion and the robust point factor."""
 
-    association: AssociationConfig = field(default_factory=AssociationConfig)
+    # rock frames come at 1 Hz here (min_frame_interval_s): persistence spans the two before
+    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(persistence_s=2.5))
     min_obs_to_insert: PositiveInt = 2  # observations (on distinct keyframes) before a rock enters the graph
     candidate_timeout_s: Positive = 10.0  # a candidate not confirmed within this is dropped
     huber_k: Positive = 3.0  # on the whitened 3-dof residual

@@ -30,7 +30,7 @@ class CraterSmootherConfig:
     """The crater layer's settings; the rest of the landmark settings are the rocks'."""
 
     association: AssociationConfig = field(default_factory=lambda: AssociationConfig(
-        max_range_m=30.0, max_size_ratio=1.6))
+        max_range_m=30.0, max_size_ratio=1.6, persistence_s=0.0))
     min_obs_to_insert: PositiveInt = 2  # observations (on distinct keyframes) before a crater enters the graph
     candidate_timeout_s: Positive = 30.0  # craters come at 0.5 Hz: a longer wait than a rock's
     huber_k: Positive = 3.0

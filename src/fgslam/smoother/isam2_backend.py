@@ -273,7 +273,8 @@ class Isam2Smoother(LateFixes, Backend):
             for r in self.fixes if r.retracted_reason
         ]
         layers = self.kinds.used()
-        kind_counts: dict[str, int] = {"n_frames_skipped": 0, "n_budget_skipped": 0, "n_budget_new_skipped": 0}
+        kind_counts: dict[str, int] = {"n_frames_skipped": 0, "n_budget_skipped": 0, "n_budget_new_skipped": 0,
+                                        "n_not_persistent": 0}
         for layer in layers:
             for k, v in layer.stats().items():
                 kind_counts[k] = kind_counts.get(k, 0) + v

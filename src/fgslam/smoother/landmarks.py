@@ -21,6 +21,7 @@ from reloc.association import associate
 from reloc.budget import innovation_trace, select_observations
 from reloc.geometry import skew
 from reloc.landmark_model import point_in_base, point_to_world
+from reloc.persistence import RecentDetections
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
 _VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
@@ -64,6 +65,8 @@ class LandmarkStore:
         self.next_id = 0
         self.n_budget_skipped = 0  # observations of graph landmarks left out by the budget
         self.n_budget_new_skipped = 0  # insertions deferred by the budget (the candidate waits)
+        self.recent = RecentDetections()  # recent detections per landmark (reloc.persistence)
+        self.n_not_persistent = 0  # associations left out: no detection at that place just before
         # live records near the last keyframe, in creation order (see set_view_cache)
         self._view: list[LandmarkRecord] | None = None
         self._view_center = np.zeros(3)
@@ -165,6 +168,15 @@ class LandmarkStore:
         to_insert: list[LandmarkRecord] = []
         l_new, c_new = point_to_world(R, p, z_base, R_z)
         matched = np.flatnonzero(a.landmark_of >= 0)
+        ac = self.cfg.association
+        n_not_persistent = 0
+        if matched.size and ac.persistence_s > 0:  # clutter inside a gate: not seen there before
+            ids = [cands[int(a.landmark_of[i])].lid for i in matched]
+            ok = self.recent.confirm(ids, t, l_new[matched], c_new[matched], ac.persistence_s, ac.gate_chi2,
+                                     ac.persistence_slack_m)
+            n_not_persistent = int(matched.size - ok.sum())
+            self.n_not_persistent += n_not_persistent
+            matched = matched[ok]
         skipped = self._over_budget(matched, [cands[int(j)] for j in a.landmark_of[matched]], S_hat, R_z, a)
         if skipped.size:  # seen, but no factor: counted, covariance not fused
             for i in skipped:
@@ -196,12 +208,14 @@ class LandmarkStore:
                 rec.pending.append((kf, z_kf[i], R_kf[i]))
                 self.records[rec.lid] = rec
                 self.live[rec.lid] = rec
+                if ac.persistence_s > 0:
+                    self.recent.record([rec.lid], t, l_new[i], c_new[i])
                 if self._view is not None:
                     self._view.append(rec)
                 self.next_id += 1
         n_new = int(a.is_new.sum())
         return FrameAssociation(observed, to_insert, int(matched.size), n_new,
-                                n_rejected + a.n_ambiguous + a.n_out_of_range + int(skipped.size))
+                                n_rejected + a.n_ambiguous + a.n_out_of_range + int(skipped.size) + n_not_persistent)
 
     def _insert_room(self, n_in_view: int) -> int | float:
         """How many candidates may enter the graph in a frame whose view holds ``n_in_view`` graph

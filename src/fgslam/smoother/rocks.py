@@ -151,4 +151,4 @@ class RockLandmarks:
 
     def stats(self) -> dict:
         return {"n_frames_skipped": self.n_frames_skipped, "n_budget_skipped": self.store.n_budget_skipped,
-                "n_budget_new_skipped": self.store.n_budget_new_skipped}
+                "n_budget_new_skipped": self.store.n_budget_new_skipped, "n_not_persistent": self.store.n_not_persistent}

@@ -1,0 +1,155 @@
+"""Temporal persistence of associations, shared by both back-ends: a rock is detected again where
+it was a moment ago; terrain clutter is not.
+
+A detector's false detections (clutter) are independent from frame to frame, but once one falls
+inside a landmark's association gate it looks like a detection of that landmark, and its
+innovation is spread over the gate around the *predicted* position: it confirms the prediction.
+Where the rocks go undetected (a plain with no rock in view, poor light) while the clutter goes
+on, a back-end then keeps confirming its own dead reckoning and its covariance stops growing
+while its error grows (``fgslam bench faults``, ``no_rocks``: position NEES 14-156).
+
+The test: an association of landmark ``j`` at ``t`` is used only when one of ``j``'s detections
+of the last ``window_s`` seconds (associated or initialising, used or not) lies at the same world
+position within the two detections' covariances (plus ``slack_m`` of relative pose change between
+the two frames, per axis): squared Mahalanobis distance below ``gate_chi2``. Every association is
+remembered, used or not, so the first detection of a rock seen again after a gap only waits for
+the next frame; a clutter point inside a gate needs a second one, in the next frames, at the same
+place within the (much smaller) measurement covariance.
+
+New landmarks get the same test (:class:`PendingDetections`): a detection far from every
+landmark waits as a *first sighting* for ``window_s``, and becomes a landmark only when a later
+frame detects something at the same world position. Clutter then never reaches a back-end's
+state, where in the EKF every tentative landmark costs a state slot and, once the state is full,
+evicts a mapped rock (a 2-minute stretch of clutter evicted every landmark around the rover, and
+the filter could not re-find them when the rocks came back). Core maths only: no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SWEEP_EVERY_S = 10.0
+
+
+def _d2(x: np.ndarray, C: np.ndarray, x0: np.ndarray, C0: np.ndarray, slack: np.ndarray) -> np.ndarray:
+    """(n, m) squared Mahalanobis distances of points ``x`` (n, 3) to ``x0`` (m, 3) on ``C + C0 + slack``."""
+    d = x[:, None, :] - x0[None, :, :]
+    S = C[:, None] + C0[None, :] + slack
+    return np.einsum("nmi,nmi->nm", d, np.linalg.solve(S, d[..., None])[..., 0])
+
+
+class RecentDetections:
+    """Per landmark id, its detections of the last seconds in world coordinates (position (3,),
+    covariance (3, 3)), at most ``depth`` each. :meth:`copy` gives an independent snapshot (the
+    EKF's checkpoints)."""
+
+    def __init__(self, depth: int = 4) -> None:
+        if depth < 1:
+            raise ValueError(f"RecentDetections: depth must be >= 1, got {depth}")
+        self.depth = depth
+        self._d: dict[int, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+        self._t_sweep = -np.inf
+        self._horizon_s = 0.0
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def copy(self) -> RecentDetections:
+        other = RecentDetections(self.depth)
+        other._d = {k: list(v) for k, v in self._d.items()}  # entries are never mutated
+        other._t_sweep, other._horizon_s = self._t_sweep, self._horizon_s
+        return other
+
+    def record(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray) -> None:
+        """Remember detections (k,) of landmarks ``ids`` at ``t`` without testing them (a landmark's
+        initialising detection)."""
+        xyz = np.reshape(np.asarray(xyz_world, dtype=float), (-1, 3))
+        cov = np.reshape(np.asarray(cov_world, dtype=float), (-1, 3, 3))
+        for i, lid in enumerate(np.asarray(ids, dtype=int).reshape(-1)):
+            entries = self._d.setdefault(int(lid), [])
+            entries.append((float(t), xyz[i].copy(), cov[i].copy()))
+            del entries[: -self.depth]
+
+    def confirm(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray,
+                window_s: float, gate_chi2: float, slack_m: float = 0.0) -> np.ndarray:
+        """(k,) bool: whether each detection (``xyz_world`` (k, 3), ``cov_world`` (k, 3, 3)) of
+        landmark ``ids`` (k,) at ``t`` has an earlier detection of the same landmark within
+        ``window_s`` (strictly before ``t``) inside ``gate_chi2``; then remembers them all.
+        ``window_s`` 0: every detection passes and nothing is remembered."""
+        ids = np.asarray(ids, dtype=int).reshape(-1)
+        k = ids.size
+        if window_s <= 0 or k == 0:
+            return np.ones(k, dtype=bool)
+        xyz = np.reshape(np.asarray(xyz_world, dtype=float), (k, 3))
+        cov = np.reshape(np.asarray(cov_world, dtype=float), (k, 3, 3))
+        slack = (slack_m * slack_m) * np.eye(3)
+        ok = np.zeros(k, dtype=bool)
+        for i, lid in enumerate(ids):
+            for t0, x0, c0 in self._d.get(int(lid), ()):
+                if t - window_s <= t0 < t:
+                    if _d2(xyz[i:i + 1], cov[i:i + 1], x0[None], c0[None], slack)[0, 0] <= gate_chi2:
+                        ok[i] = True
+                        break
+        self.record(ids, t, xyz, cov)
+        self._horizon_s = max(self._horizon_s, window_s)
+        if t - self._t_sweep > _SWEEP_EVERY_S:
+            self.sweep(t)
+        return ok
+
+    def sweep(self, t: float) -> None:
+        """Forget the landmarks with no detection within the longest window used so far."""
+        self._t_sweep = t
+        old = t - self._horizon_s
+        self._d = {k: v for k, v in self._d.items() if v[-1][0] >= old}
+
+    def forget(self, ids) -> None:
+        """Drop the records of landmarks ``ids`` (they left the map)."""
+        for lid in np.asarray(ids, dtype=int).reshape(-1):
+            self._d.pop(int(lid), None)
+
+
+class PendingDetections:
+    """First sightings: detections that would start a landmark, kept for a few seconds until a
+    later frame confirms one at the same world position (see module doc). :meth:`copy` gives an
+    independent snapshot."""
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0)
+        self.xyz = np.zeros((0, 3))
+        self.cov = np.zeros((0, 3, 3))
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def copy(self) -> PendingDetections:
+        other = PendingDetections()
+        other.t, other.xyz, other.cov = self.t.copy(), self.xyz.copy(), self.cov.copy()
+        return other
+
+    def confirm(self, t: float, xyz_world: np.ndarray, cov_world: np.ndarray, window_s: float,
+                gate_chi2: float, slack_m: float = 0.0) -> np.ndarray:
+        """(n,) bool: which of the would-be landmarks ``xyz_world`` (n, 3), ``cov_world`` (n, 3, 3)
+        at ``t`` repeat a first sighting of the last ``window_s`` seconds (strictly before ``t``)
+        within ``gate_chi2``. Each first sighting confirms at most one detection (the nearest) and
+        is then used up; the others of this frame become first sightings. ``window_s`` 0: all pass."""
+        xyz = np.reshape(np.asarray(xyz_world, dtype=float), (-1, 3))
+        cov = np.reshape(np.asarray(cov_world, dtype=float), (-1, 3, 3))
+        n = xyz.shape[0]
+        if window_s <= 0:
+            return np.ones(n, dtype=bool)
+        live = (self.t >= t - window_s) & (self.t < t)
+        self.t, self.xyz, self.cov = self.t[live], self.xyz[live], self.cov[live]
+        ok = np.zeros(n, dtype=bool)
+        if n and len(self):
+            d2 = _d2(xyz, cov, self.xyz, self.cov, (slack_m * slack_m) * np.eye(3))
+            used = np.zeros(len(self), dtype=bool)
+            for i in np.argsort(d2.min(axis=1), kind="stable"):  # the closest pairs first
+                cand = np.flatnonzero((d2[i] <= gate_chi2) & ~used)
+                if cand.size:
+                    used[cand[np.argmin(d2[i, cand])]] = True
+                    ok[i] = True
+            self.t, self.xyz, self.cov = self.t[~used], self.xyz[~used], self.cov[~used]
+        self.t = np.concatenate([self.t, np.full(int((~ok).sum()), float(t))])
+        self.xyz = np.vstack([self.xyz, xyz[~ok]])
+        self.cov = np.concatenate([self.cov, cov[~ok]])
+        return ok

@@ -1,0 +1,107 @@
+"""Temporal persistence of associations (reloc.persistence): a rock's detections agree from frame
+to frame within their covariances; clutter that falls inside a landmark's gate does not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from reloc.association import AssociationConfig
+from reloc.persistence import RecentDetections
+
+GATE = AssociationConfig().gate_chi2
+R = np.diag([0.03, 0.02, 0.02]) ** 2  # a rock 6-8 m away: stereo covariance, world frame
+
+
+def _confirm(rd, lid, t, x, cov=R, window=1.6, slack=0.0):
+    return bool(rd.confirm(np.array([lid]), t, np.reshape(x, (1, 3)), cov[None], window, GATE, slack)[0])
+
+
+def test_a_detection_is_confirmed_only_by_an_earlier_one_at_the_same_place_within_the_window():
+    rd = RecentDetections()
+    x = np.array([5.0, 1.0, 0.2])
+    assert not _confirm(rd, 7, 10.0, x)  # first sighting: nothing before it
+    assert _confirm(rd, 7, 10.5, x + [0.02, -0.01, 0.0])  # the next frame, same place
+    assert not _confirm(rd, 7, 11.0, x + [0.5, 0.0, 0.0])  # 0.5 m off: another point
+    assert not _confirm(rd, 8, 11.0, x)  # another landmark's record does not count
+    assert not _confirm(rd, 7, 20.0, x)  # everything before is older than the window
+    assert not _confirm(rd, 9, 30.0, x) and not _confirm(rd, 9, 30.0, x)  # the same frame is not "before"
+    # the slack widens the gate by the relative pose change between two frames
+    assert not _confirm(rd, 11, 40.0, x) and not _confirm(rd, 11, 40.5, x + [0.15, 0.0, 0.0])
+    assert _confirm(rd, 12, 50.0, x) is False and _confirm(rd, 12, 50.5, x + [0.15, 0.0, 0.0], slack=0.05)
+
+
+def test_window_zero_passes_everything_and_remembers_nothing():
+    rd = RecentDetections()
+    ok = rd.confirm(np.arange(3), 1.0, np.zeros((3, 3)), np.tile(R, (3, 1, 1)), 0.0, GATE)
+    assert ok.all() and len(rd) == 0
+
+
+def test_record_seeds_a_new_landmark_and_copies_sweeps_and_forget_are_independent():
+    rd = RecentDetections(depth=2)
+    x = np.array([3.0, 0.0, 0.0])
+    rd.record(np.array([1]), 0.0, x[None], R[None])
+    snap = rd.copy()
+    assert _confirm(rd, 1, 0.5, x)
+    rd.forget([1])
+    assert not _confirm(rd, 1, 1.0, x + [1.0, 0, 0])  # forgotten: nothing to confirm against
+    assert _confirm(snap, 1, 0.5, x)  # the snapshot kept its own record
+    # a sweep forgets landmarks with nothing within the longest window used
+    rd2 = RecentDetections()
+    _confirm(rd2, 5, 0.0, x)
+    _confirm(rd2, 6, 100.0, x)
+    assert len(rd2) == 1
+    with pytest.raises(ValueError, match="depth must be >= 1"):
+        RecentDetections(depth=0)
+
+
+def test_a_rocks_detections_pass_at_the_gate_level_and_clutter_in_its_gate_seldom_does():
+    """Sampled: two detections of one rock with their covariances pass as often as the chi2 gate
+    says (99 %); clutter spread uniformly over an association gate 5x the measurement sigma (a
+    landmark predicted with some pose uncertainty) passes in a few per cent of the pairs."""
+    rng = np.random.default_rng(0)
+    n = 4000
+    L = np.linalg.cholesky(R)
+    rock = np.array([6.0, 2.0, 0.1])
+    true_ok = clutter_ok = 0
+    S = 25.0 * R + R  # the association gate's covariance
+    Ls = np.linalg.cholesky(S)
+    for k in range(n):
+        rd = RecentDetections()
+        a = rock + L @ rng.standard_normal(3)
+        b = rock + L @ rng.standard_normal(3)
+        _confirm(rd, 0, 0.0, a)
+        true_ok += _confirm(rd, 0, 0.5, b)
+        # two clutter points uniform inside the gate ellipsoid of the same landmark
+        u = rng.standard_normal((2, 3))
+        u *= (rng.uniform(size=(2, 1)) ** (1 / 3)) * np.sqrt(GATE) / np.linalg.norm(u, axis=1, keepdims=True)
+        c = rock + u @ Ls.T
+        _confirm(rd, 1, 0.0, c[0])
+        clutter_ok += _confirm(rd, 1, 0.5, c[1])
+    p = true_ok / n
+    assert abs(p - chi2.cdf(GATE, 3)) < 0.01, p
+    assert clutter_ok / n < 0.05, clutter_ok / n
+
+
+def test_a_landmark_starts_only_from_a_second_sighting_at_the_same_place():
+    from reloc.persistence import PendingDetections
+
+    pd = PendingDetections()
+    cov = np.tile(R, (2, 1, 1))
+    a, b = np.array([4.0, 1.0, 0.0]), np.array([8.0, -2.0, 0.1])
+    assert not pd.confirm(0.0, np.stack([a, b]), cov, 1.6, GATE).any()  # first sightings wait
+    assert len(pd) == 2
+    # the next frame: a again (within noise), b's place empty, a clutter point elsewhere
+    ok = pd.confirm(0.5, np.stack([a + [0.01, 0.0, 0.0], [6.0, 3.0, 0.0]]), cov, 1.6, GATE)
+    assert ok.tolist() == [True, False]
+    assert len(pd) == 2  # a's first sighting used up; b waits; the clutter point is a first sighting
+    # one first sighting confirms one detection only (the nearer of two)
+    ok = pd.confirm(1.0, np.stack([b + [0.03, 0, 0], b + [0.005, 0, 0]]), cov, 1.6, GATE)
+    assert ok.tolist() == [False, True]
+    # first sightings older than the window are gone; window 0 lets everything through
+    assert not pd.confirm(5.0, b[None], R[None], 1.6, GATE).any()
+    assert pd.confirm(6.0, np.zeros((3, 3)), np.tile(R, (3, 1, 1)), 0.0, GATE).all()
+    snap = pd.copy()
+    assert pd.confirm(5.5, b[None], R[None], 1.6, GATE).all()
+    assert snap.confirm(5.5, b[None], R[None], 1.6, GATE).all()  # the copy kept its own
