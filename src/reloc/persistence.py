@@ -86,10 +86,9 @@ class RecentDetections:
         ok = np.zeros(k, dtype=bool)
         for i, lid in enumerate(ids):
             for t0, x0, c0 in self._d.get(int(lid), ()):
-                if t - window_s <= t0 < t:
-                    if _d2(xyz[i:i + 1], cov[i:i + 1], x0[None], c0[None], slack)[0, 0] <= gate_chi2:
-                        ok[i] = True
-                        break
+                if t - window_s <= t0 < t and _d2(xyz[i:i + 1], cov[i:i + 1], x0[None], c0[None], slack)[0, 0] <= gate_chi2:
+                    ok[i] = True
+                    break
         self.record(ids, t, xyz, cov)
         self._horizon_s = max(self._horizon_s, window_s)
         if t - self._t_sweep > _SWEEP_EVERY_S:

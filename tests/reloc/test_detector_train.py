@@ -90,7 +90,13 @@ def test_an_exported_model_loads_back_for_fine_tuning(tmp_path):
     import onnxruntime as ort
     import torch
 
-    from fgslam.train.detector import export_onnx, fit, load_onnx_weights, load_weights, save_weights
+    from fgslam.train.detector import (
+        export_onnx,
+        fit,
+        load_onnx_weights,
+        load_weights,
+        save_weights,
+    )
     from fgslam.train.model import DetectorNet
 
     torch.manual_seed(0)
@@ -113,8 +119,8 @@ def test_an_exported_model_loads_back_for_fine_tuning(tmp_path):
     assert np.allclose(y, z, atol=1e-4)
 
     def batch():
-        from fgslam.train.targets import centre_targets
         from fgslam.train.detector import stack_targets
+        from fgslam.train.targets import centre_targets
 
         t = centre_targets(np.array([[20.0, 30.0]]), np.array([[8.0]]), np.zeros((0, 4)), 64, 64, 2, sigma_per_size=0.1)
         return x[..., :64], stack_targets([t])
