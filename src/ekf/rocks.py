@@ -30,6 +30,7 @@ from reloc.landmark_model import (
     point_to_world,
 )
 from reloc.measurements import RockObservations
+from reloc.persistence import slack_variance
 
 
 def stacked_jacobian(H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
@@ -163,7 +164,7 @@ class RockUpdate:
         if det.size and a_cfg.persistence_s > 0:  # clutter inside a gate: not seen there before
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[det], Rz[det])
             ok = s.recent.confirm(s.book.ids[cand[ci]], obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
-                                  a_cfg.persistence_slack_m)
+                                  self._slack(z[det]))
             n_not_persistent = int(det.size - ok.sum())
             det, ci = det[ok], ci[ok]
         n_lone = 0
@@ -192,7 +193,7 @@ class RockUpdate:
         if new.size and a_cfg.persistence_s > 0:
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[new], Rz[new])
             again = s.pending_for(self.code).confirm(obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
-                                                     a_cfg.persistence_slack_m)
+                                                     self._slack(z[new]))
             n_first = int(new.size - again.sum())
             new = new[again]
         # hygiene and the bound first, so the state never exceeds max_landmarks
@@ -227,6 +228,11 @@ class RockUpdate:
                    n_lone_pairs_skipped=n_lone, n_not_persistent=n_not_persistent,
                    n_first_sightings=n_first)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
+
+    def _slack(self, z: np.ndarray) -> np.ndarray:
+        """Per-axis slack variances (k,) of the persistence test for points ``z`` (k, 3) in base_link."""
+        a = self.config.association
+        return slack_variance(a.persistence_slack_m, a.persistence_slack_rad, np.linalg.norm(z, axis=1))
 
     def _counts(self, s: FilterState, keep: np.ndarray | None = None) -> dict[int, int]:
         """Landmarks per kind code that holds a reserve (of the rows in ``keep`` (N,), all for None)."""

@@ -55,11 +55,13 @@ class AssociationConfig:
     uncertain_ratio: Positive = 16.0  # 4 sigma: 4.0 (2 sigma) dropped sparse cnes pairs in normal running (EKF ATE 0.056 -> 0.078 m)
     # temporal persistence (reloc.persistence, applied by the back-ends after associate): a pair is
     # used only when its landmark had a detection at the same world position (within gate_chi2 on
-    # the two detections' covariances plus persistence_slack_m per axis) in the persistence_s
-    # seconds before; clutter inside a gate seldom has one. 0: off. Set to span two or three of
-    # the back-end's frames (the EKF takes rock frames at 2 Hz; the smoother at 1 Hz)
+    # the two detections' covariances plus, per axis, persistence_slack_m and persistence_slack_rad
+    # times the range: pose change between the frames that the odometry may not model) in the
+    # persistence_s seconds before; clutter inside a gate seldom has one. 0: off. Set to span two
+    # or three of the back-end's frames (the EKF takes rock frames at 2 Hz; the smoother at 1 Hz)
     persistence_s: NonNegative = 1.6
     persistence_slack_m: NonNegative = 0.02
+    persistence_slack_rad: NonNegative = 0.005
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,8 @@ while its error grows (``fgslam bench faults``, ``no_rocks``: position NEES 14-1
 
 The test: an association of landmark ``j`` at ``t`` is used only when one of ``j``'s detections
 of the last ``window_s`` seconds (associated or initialising, used or not) lies at the same world
-position within the two detections' covariances (plus ``slack_m`` of relative pose change between
-the two frames, per axis): squared Mahalanobis distance below ``gate_chi2``. Every association is
+position within the two detections' covariances (plus the pose change between the two frames the odometry may
+not model, per axis: ``slack_m`` and ``slack_rad`` times the point's range, :func:`slack_variance`): squared Mahalanobis distance below ``gate_chi2``. Every association is
 remembered, used or not, so the first detection of a rock seen again after a gap only waits for
 the next frame; a clutter point inside a gate needs a second one, in the next frames, at the same
 place within the (much smaller) measurement covariance.
@@ -32,10 +32,19 @@ _SWEEP_EVERY_S = 10.0
 
 
 def _d2(x: np.ndarray, C: np.ndarray, x0: np.ndarray, C0: np.ndarray, slack: np.ndarray) -> np.ndarray:
-    """(n, m) squared Mahalanobis distances of points ``x`` (n, 3) to ``x0`` (m, 3) on ``C + C0 + slack``."""
+    """(n, m) squared Mahalanobis distances of points ``x`` (n, 3) to ``x0`` (m, 3) on
+    ``C + C0 + slack_n I`` (``slack`` (n,) variances)."""
     d = x[:, None, :] - x0[None, :, :]
-    S = C[:, None] + C0[None, :] + slack
+    S = C[:, None] + C0[None, :] + slack[:, None, None, None] * np.eye(3)
     return np.einsum("nmi,nmi->nm", d, np.linalg.solve(S, d[..., None])[..., 0])
+
+
+def slack_variance(slack_m: float, slack_rad: float, range_m) -> np.ndarray:
+    """Per-axis variance (n,) of the pose change between two frames at a point ``range_m`` (n,)
+    away: ``slack_m`` of translation and ``slack_rad`` of rotation (a heading drift the odometry
+    does not model moves a far point more than a near one)."""
+    r = np.asarray(range_m, dtype=float).reshape(-1)
+    return slack_m * slack_m + (slack_rad * r) ** 2
 
 
 class RecentDetections:
@@ -71,10 +80,11 @@ class RecentDetections:
             del entries[: -self.depth]
 
     def confirm(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray,
-                window_s: float, gate_chi2: float, slack_m: float = 0.0) -> np.ndarray:
+                window_s: float, gate_chi2: float, slack_var=0.0) -> np.ndarray:
         """(k,) bool: whether each detection (``xyz_world`` (k, 3), ``cov_world`` (k, 3, 3)) of
         landmark ``ids`` (k,) at ``t`` has an earlier detection of the same landmark within
-        ``window_s`` (strictly before ``t``) inside ``gate_chi2``; then remembers them all.
+        ``window_s`` (strictly before ``t``) inside ``gate_chi2`` (on the two covariances plus
+        ``slack_var``, scalar or (k,), per axis: :func:`slack_variance`); then remembers them all.
         ``window_s`` 0: every detection passes and nothing is remembered."""
         ids = np.asarray(ids, dtype=int).reshape(-1)
         k = ids.size
@@ -82,11 +92,11 @@ class RecentDetections:
             return np.ones(k, dtype=bool)
         xyz = np.reshape(np.asarray(xyz_world, dtype=float), (k, 3))
         cov = np.reshape(np.asarray(cov_world, dtype=float), (k, 3, 3))
-        slack = (slack_m * slack_m) * np.eye(3)
+        slack = np.broadcast_to(np.asarray(slack_var, dtype=float), (k,))
         ok = np.zeros(k, dtype=bool)
         for i, lid in enumerate(ids):
             for t0, x0, c0 in self._d.get(int(lid), ()):
-                if t - window_s <= t0 < t and _d2(xyz[i:i + 1], cov[i:i + 1], x0[None], c0[None], slack)[0, 0] <= gate_chi2:
+                if t - window_s <= t0 < t and _d2(xyz[i:i + 1], cov[i:i + 1], x0[None], c0[None], slack[i:i + 1])[0, 0] <= gate_chi2:
                     ok[i] = True
                     break
         self.record(ids, t, xyz, cov)
@@ -126,11 +136,12 @@ class PendingDetections:
         return other
 
     def confirm(self, t: float, xyz_world: np.ndarray, cov_world: np.ndarray, window_s: float,
-                gate_chi2: float, slack_m: float = 0.0) -> np.ndarray:
+                gate_chi2: float, slack_var=0.0) -> np.ndarray:
         """(n,) bool: which of the would-be landmarks ``xyz_world`` (n, 3), ``cov_world`` (n, 3, 3)
         at ``t`` repeat a first sighting of the last ``window_s`` seconds (strictly before ``t``)
         within ``gate_chi2``. Each first sighting confirms at most one detection (the nearest) and
-        is then used up; the others of this frame become first sightings. ``window_s`` 0: all pass."""
+        is then used up; the others of this frame become first sightings. ``slack_var`` as in
+        :meth:`RecentDetections.confirm`. ``window_s`` 0: all pass."""
         xyz = np.reshape(np.asarray(xyz_world, dtype=float), (-1, 3))
         cov = np.reshape(np.asarray(cov_world, dtype=float), (-1, 3, 3))
         n = xyz.shape[0]
@@ -140,7 +151,7 @@ class PendingDetections:
         self.t, self.xyz, self.cov = self.t[live], self.xyz[live], self.cov[live]
         ok = np.zeros(n, dtype=bool)
         if n and len(self):
-            d2 = _d2(xyz, cov, self.xyz, self.cov, (slack_m * slack_m) * np.eye(3))
+            d2 = _d2(xyz, cov, self.xyz, self.cov, np.broadcast_to(np.asarray(slack_var, dtype=float), (n,)))
             used = np.zeros(len(self), dtype=bool)
             for i in np.argsort(d2.min(axis=1), kind="stable"):  # the closest pairs first
                 cand = np.flatnonzero((d2[i] <= gate_chi2) & ~used)

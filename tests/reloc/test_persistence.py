@@ -29,7 +29,7 @@ def test_a_detection_is_confirmed_only_by_an_earlier_one_at_the_same_place_withi
     assert not _confirm(rd, 9, 30.0, x) and not _confirm(rd, 9, 30.0, x)  # the same frame is not "before"
     # the slack widens the gate by the relative pose change between two frames
     assert not _confirm(rd, 11, 40.0, x) and not _confirm(rd, 11, 40.5, x + [0.15, 0.0, 0.0])
-    assert _confirm(rd, 12, 50.0, x) is False and _confirm(rd, 12, 50.5, x + [0.15, 0.0, 0.0], slack=0.05)
+    assert _confirm(rd, 12, 50.0, x) is False and _confirm(rd, 12, 50.5, x + [0.15, 0.0, 0.0], slack=0.05**2)
 
 
 def test_window_zero_passes_everything_and_remembers_nothing():
@@ -105,3 +105,21 @@ def test_a_landmark_starts_only_from_a_second_sighting_at_the_same_place():
     snap = pd.copy()
     assert pd.confirm(5.5, b[None], R[None], 1.6, GATE).all()
     assert snap.confirm(5.5, b[None], R[None], 1.6, GATE).all()  # the copy kept its own
+
+
+def test_the_slack_grows_with_range_for_a_heading_the_odometry_does_not_follow():
+    from reloc.persistence import slack_variance
+
+    v = slack_variance(0.02, 0.005, np.array([0.0, 10.0]))
+    assert np.allclose(v, [0.02**2, 0.02**2 + 0.05**2])
+    # a point 10 m ahead (stereo: 10 cm in range, 1 cm sideways), the heading 12 mrad off between
+    # the two frames (2.5 s of a 0.005 rad/s drift the odometry does not see): 12 cm sideways
+    far = np.diag([0.1, 0.01, 0.01]) ** 2
+    rd = RecentDetections()
+    x = np.array([10.0, 0.0, 0.0])
+    moved = x + [0.0, 0.12, 0.0]
+    assert not _confirm(rd, 1, 0.0, x, far)
+    assert not _confirm(rd, 1, 0.5, moved, far, slack=slack_variance(0.02, 0.0, [10.0]))
+    rd = RecentDetections()
+    assert not _confirm(rd, 1, 0.0, x, far)
+    assert _confirm(rd, 1, 0.5, moved, far, slack=slack_variance(0.02, 0.005, [10.0]))
