@@ -94,11 +94,19 @@ class RecentDetections:
         cov = np.reshape(np.asarray(cov_world, dtype=float), (k, 3, 3))
         slack = np.broadcast_to(np.asarray(slack_var, dtype=float), (k,))
         ok = np.zeros(k, dtype=bool)
+        rows, x0, c0 = [], [], []  # every (detection, earlier detection) pair in the window
         for i, lid in enumerate(ids):
-            for t0, x0, c0 in self._d.get(int(lid), ()):
-                if t - window_s <= t0 < t and _d2(xyz[i:i + 1], cov[i:i + 1], x0[None], c0[None], slack[i:i + 1])[0, 0] <= gate_chi2:
-                    ok[i] = True
-                    break
+            for t0, x, c in self._d.get(int(lid), ()):
+                if t - window_s <= t0 < t:
+                    rows.append(i)
+                    x0.append(x)
+                    c0.append(c)
+        if rows:
+            r = np.array(rows)
+            d = xyz[r] - np.array(x0)
+            S = cov[r] + np.array(c0) + slack[r, None, None] * np.eye(3)
+            d2 = np.einsum("ki,ki->k", d, np.linalg.solve(S, d[..., None])[..., 0])
+            ok[r[d2 <= gate_chi2]] = True
         self.record(ids, t, xyz, cov)
         self._horizon_s = max(self._horizon_s, window_s)
         if t - self._t_sweep > _SWEEP_EVERY_S:
