@@ -161,10 +161,12 @@ class RockUpdate:
         det, ci = assoc.pairs
         a_cfg = cfg.association
         n_not_persistent = 0
+        seen_det, seen_ids = det[:0], det[:0]
         if det.size and a_cfg.persistence_s > 0:  # clutter inside a gate: not seen there before
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[det], Rz[det])
-            ok = s.recent.confirm(s.book.ids[cand[ci]], obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
-                                  self._slack(z[det]))
+            seen_ids = s.book.ids[cand[ci]]
+            seen_det = det
+            ok = s.recent.test(seen_ids, obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2, self._slack(z[det]))
             n_not_persistent = int(det.size - ok.sum())
             det, ci = det[ok], ci[ok]
         n_lone = 0
@@ -186,6 +188,9 @@ class RockUpdate:
             n_used = int(use.size)
         else:
             n_used = 0
+        if seen_det.size:  # every associated detection, placed with the updated pose
+            xw, cw = point_to_world(s.R_world_base, s.p_world, z[seen_det], Rz[seen_det])
+            s.recent.record(seen_ids, obs.t, xw, cw)
 
         # a new landmark only from a second sighting at the same place (first sightings wait)
         new = np.flatnonzero(assoc.is_new)

@@ -81,11 +81,23 @@ class RecentDetections:
 
     def confirm(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray,
                 window_s: float, gate_chi2: float, slack_var=0.0) -> np.ndarray:
+        """:meth:`test`, then :meth:`record` of the same detections (a back-end that places them
+        no better after its update)."""
+        ok = self.test(ids, t, xyz_world, cov_world, window_s, gate_chi2, slack_var)
+        if window_s > 0:
+            self.record(ids, t, xyz_world, cov_world)
+        return ok
+
+    def test(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray,
+             window_s: float, gate_chi2: float, slack_var=0.0) -> np.ndarray:
         """(k,) bool: whether each detection (``xyz_world`` (k, 3), ``cov_world`` (k, 3, 3)) of
         landmark ``ids`` (k,) at ``t`` has an earlier detection of the same landmark within
         ``window_s`` (strictly before ``t``) inside ``gate_chi2`` (on the two covariances plus
-        ``slack_var``, scalar or (k,), per axis: :func:`slack_variance`); then remembers them all.
-        ``window_s`` 0: every detection passes and nothing is remembered."""
+        ``slack_var``, scalar or (k,), per axis: :func:`slack_variance`). Remembers nothing:
+        :meth:`record` them once placed (an EKF after its update: placed with the pose the
+        frame's update gave, the next frame compares against where the rocks are, not against
+        where the pose before the correction put them; a test biased against its own corrections
+        made the EKF inconsistent). ``window_s`` 0: every detection passes."""
         ids = np.asarray(ids, dtype=int).reshape(-1)
         k = ids.size
         if window_s <= 0 or k == 0:
@@ -107,7 +119,6 @@ class RecentDetections:
             S = cov[r] + np.array(c0) + slack[r, None, None] * np.eye(3)
             d2 = np.einsum("ki,ki->k", d, np.linalg.solve(S, d[..., None])[..., 0])
             ok[r[d2 <= gate_chi2]] = True
-        self.record(ids, t, xyz, cov)
         self._horizon_s = max(self._horizon_s, window_s)
         if t - self._t_sweep > _SWEEP_EVERY_S:
             self.sweep(t)

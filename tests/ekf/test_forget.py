@@ -8,6 +8,7 @@ from ekf_synth import simulate
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
+from reloc.association import AssociationConfig
 from reloc.backend import PoseEstimate
 
 START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8]))
@@ -16,8 +17,13 @@ START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8
 def test_landmarks_out_of_reach_are_marginalised_and_the_state_stays_bounded():
     run = simulate(7, duration_s=240.0, frame_every=15, n_rocks=200)  # 60 m of path, sparse
     forget = 14.0  # beyond the stereo range (12 m): only what was left behind is forgotten
-    ekf = EkfSlam(START, EkfConfig(forget_distance_m=forget))
-    keep = EkfSlam(START, EkfConfig())
+    # persistence (reloc.persistence) off: this checks forgetting alone. This seed's run ends at
+    # ~3 sigma laterally with or without it, and the first-sighting delay tips it over (inside 3
+    # sigma 62 % against 99.8 %); over seeds 1-5 and 7 (this loop with persistence on and off) the mean
+    # position NEES is 5.1 with it and 5.6 without, inside 3 sigma on 4 of 6 seeds either way
+    plain = AssociationConfig(persistence_s=0.0)
+    ekf = EkfSlam(START, EkfConfig(forget_distance_m=forget, association=plain))
+    keep = EkfSlam(START, EkfConfig(association=plain))
     sizes, kept, far, inside = [], [], [], []
     for k, step in enumerate(run.steps):
         for f in (ekf, keep):

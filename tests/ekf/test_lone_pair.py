@@ -9,6 +9,7 @@ import numpy as np
 
 from ekf.config import EkfConfig
 from ekf.slam import EkfSlam
+from reloc.association import AssociationConfig
 from reloc.backend import PoseEstimate
 from reloc.measurements import RockObservations
 from reloc.odometry import OdometryStep
@@ -23,7 +24,9 @@ def frame(t: float, xyz: list[list[float]], sigma_m: float = 0.01) -> RockObserv
 
 
 def run(skip: bool) -> tuple[EkfSlam, np.ndarray, np.ndarray]:
-    ekf = EkfSlam(START, dataclasses.replace(EkfConfig(), skip_lone_ambiguous_pair=skip))
+    # persistence off: the rocks are mapped from one frame (this checks the lone-pair rule alone)
+    ekf = EkfSlam(START, dataclasses.replace(EkfConfig(), skip_lone_ambiguous_pair=skip,
+                                             association=AssociationConfig(persistence_s=0.0)))
     rocks = [[3.0, 0.0, 0.0], [4.0, 2.0, 0.0], [5.0, -2.0, 0.0]]
     ekf.observe(frame(0.5, rocks))
     for k in range(10):  # drive 1 m forward: the pose becomes uncertain on its own
