@@ -30,7 +30,7 @@ from reloc.landmark_model import (
     point_to_world,
 )
 from reloc.measurements import RockObservations
-from reloc.persistence import slack_variance
+from reloc.persistence import persistence_slack
 
 
 def stacked_jacobian(H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
@@ -166,7 +166,8 @@ class RockUpdate:
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[det], Rz[det])
             seen_ids = s.book.ids[cand[ci]]
             seen_det = det
-            ok = s.recent.test(seen_ids, obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2, self._slack(z[det]))
+            ok = s.recent.test(seen_ids, obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
+                               persistence_slack(a_cfg, z[det]))
             n_not_persistent = int(det.size - ok.sum())
             det, ci = det[ok], ci[ok]
         n_lone = 0
@@ -198,7 +199,7 @@ class RockUpdate:
         if new.size and a_cfg.persistence_s > 0:
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[new], Rz[new])
             again = s.pending_for(self.code).confirm(obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
-                                                     self._slack(z[new]))
+                                                     persistence_slack(a_cfg, z[new]))
             n_first = int(new.size - again.sum())
             new = new[again]
         # hygiene and the bound first, so the state never exceeds max_landmarks
@@ -233,11 +234,6 @@ class RockUpdate:
                    n_lone_pairs_skipped=n_lone, n_not_persistent=n_not_persistent,
                    n_first_sightings=n_first)
         return LandmarkUpdateReport(obs.t, n_det, n_used, int(new.size), n_det - n_used - int(new.size))
-
-    def _slack(self, z: np.ndarray) -> np.ndarray:
-        """Per-axis slack variances (k,) of the persistence test for points ``z`` (k, 3) in base_link."""
-        a = self.config.association
-        return slack_variance(a.persistence_slack_m, a.persistence_slack_rad, np.linalg.norm(z, axis=1))
 
     def _counts(self, s: FilterState, keep: np.ndarray | None = None) -> dict[int, int]:
         """Landmarks per kind code that holds a reserve (of the rows in ``keep`` (N,), all for None)."""

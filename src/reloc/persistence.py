@@ -10,9 +10,10 @@ while its error grows (``fgslam bench faults``, ``no_rocks``: position NEES 14-1
 
 The test: an association of landmark ``j`` at ``t`` is used only when one of ``j``'s detections
 of the last ``window_s`` seconds (associated or initialising, used or not) lies at the same world
-position within the two detections' covariances (plus the pose change between the two frames the odometry may
-not model, per axis: ``slack_m`` and ``slack_rad`` times the point's range, :func:`slack_variance`): squared Mahalanobis distance below ``gate_chi2``. Every association is
-remembered, used or not, so the first detection of a rock seen again after a gap only waits for
+position within the two detections' covariances, plus the pose change between the two frames
+that the odometry may not model (per axis: ``slack_m``, and ``slack_rad`` times the point's
+range; :func:`slack_variance`): squared Mahalanobis distance below ``gate_chi2``. Every
+association is remembered, used or not, so the first detection of a rock seen again after a gap only waits for
 the next frame; a clutter point inside a gate needs a second one, in the next frames, at the same
 place within the (much smaller) measurement covariance.
 
@@ -28,15 +29,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from reloc.association import AssociationConfig, pairwise_d2
+
 _SWEEP_EVERY_S = 10.0
-
-
-def _d2(x: np.ndarray, C: np.ndarray, x0: np.ndarray, C0: np.ndarray, slack: np.ndarray) -> np.ndarray:
-    """(n, m) squared Mahalanobis distances of points ``x`` (n, 3) to ``x0`` (m, 3) on
-    ``C + C0 + slack_n I`` (``slack`` (n,) variances)."""
-    d = x[:, None, :] - x0[None, :, :]
-    S = C[:, None] + C0[None, :] + slack[:, None, None, None] * np.eye(3)
-    return np.einsum("nmi,nmi->nm", d, np.linalg.solve(S, d[..., None])[..., 0])
 
 
 def slack_variance(slack_m: float, slack_rad: float, range_m) -> np.ndarray:
@@ -45,6 +40,13 @@ def slack_variance(slack_m: float, slack_rad: float, range_m) -> np.ndarray:
     does not model moves a far point more than a near one)."""
     r = np.asarray(range_m, dtype=float).reshape(-1)
     return slack_m * slack_m + (slack_rad * r) ** 2
+
+
+def persistence_slack(config: AssociationConfig, z_base: np.ndarray) -> np.ndarray:
+    """:func:`slack_variance` (k,) of ``config``'s persistence settings for detections ``z_base``
+    (k, 3) in base_link (their range from the rover)."""
+    r = np.linalg.norm(np.reshape(np.asarray(z_base, dtype=float), (-1, 3)), axis=1)
+    return slack_variance(config.persistence_slack_m, config.persistence_slack_rad, r)
 
 
 class RecentDetections:
@@ -170,7 +172,8 @@ class PendingDetections:
         self.t, self.xyz, self.cov = self.t[live], self.xyz[live], self.cov[live]
         ok = np.zeros(n, dtype=bool)
         if n and len(self):
-            d2 = _d2(xyz, cov, self.xyz, self.cov, np.broadcast_to(np.asarray(slack_var, dtype=float), (n,)))
+            slack = np.broadcast_to(np.asarray(slack_var, dtype=float), (n,))
+            d2 = pairwise_d2(xyz, cov + slack[:, None, None] * np.eye(3), self.xyz, self.cov)
             used = np.zeros(len(self), dtype=bool)
             for i in np.argsort(d2.min(axis=1), kind="stable"):  # the closest pairs first
                 cand = np.flatnonzero((d2[i] <= gate_chi2) & ~used)
