@@ -368,26 +368,41 @@ def test_a_signalled_process_ends_even_when_its_shutdown_would_wait_for_ever():
     assert "did not finish" in proc.stderr
 
 
-def test_run_takes_a_sim_directory_calibration_unless_told_otherwise(tmp_path, caplog):
+def test_run_and_compare_take_a_sim_directory_calibration_unless_told_otherwise(tmp_path):
     """A kilometre sim directory's backend.yaml sizes the back-ends' calibration to its sensors:
-    `fgslam run DIR` takes it unless --config names another; `fgslam compare` (one config for all
-    its directories) says when one goes unused, naming the flag."""
-    import logging
+    `fgslam run DIR` and `fgslam compare DIR...` take it unless --config names another; directories
+    whose backend.yaml differ (or only some with one) cannot share one comparison config: refused
+    before any work, naming them."""
+    from fgslam.cli.cmd_run import compare_dirs_config, sim_dir_config
+    from fgslam.errors import InputFileError
 
-    from fgslam.cli.cmd_run import sim_dir_config, warn_unused_backend_yaml
-
-    d = tmp_path / "km"
-    d.mkdir()
+    d, e, yard = tmp_path / "km", tmp_path / "km2", tmp_path / "yard"
+    for x in (d, e, yard):
+        x.mkdir()
     assert sim_dir_config(d, None) is None and sim_dir_config(None, None) is None
-    with caplog.at_level(logging.WARNING):
-        warn_unused_backend_yaml(d, None)
-        assert not caplog.records
-    (d / "backend.yaml").write_text("backend_overrides: {}\n")
+    assert compare_dirs_config([d, yard], None) is None
+    (d / "backend.yaml").write_text("backend_overrides: {ekf: {rock_cov_scale: 4.0}}\n")
     other = tmp_path / "other.yaml"
     assert sim_dir_config(d, None) == d / "backend.yaml" and sim_dir_config(d, other) == other
-    with caplog.at_level(logging.WARNING):
-        warn_unused_backend_yaml(d, d / "backend.yaml")
-        warn_unused_backend_yaml(None, None)
-        assert not caplog.records
-        warn_unused_backend_yaml(d, None)
-    assert len(caplog.records) == 1 and f"--config {d / 'backend.yaml'}" in caplog.records[0].getMessage()
+    assert compare_dirs_config([d], None) == d / "backend.yaml"
+    assert compare_dirs_config([d, yard], other) == other
+    with pytest.raises(InputFileError, match="no backend.yaml: .*yard"):
+        compare_dirs_config([d, yard], None)
+    (e / "backend.yaml").write_text("backend_overrides:\n  ekf:\n    rock_cov_scale: 4.0\n")  # the same mapping
+    assert compare_dirs_config([d, e], None) == d / "backend.yaml"
+    (e / "backend.yaml").write_text("backend_overrides: {ekf: {rock_cov_scale: 2.0}}\n")
+    with pytest.raises(InputFileError, match="backend.yaml #1: .*km; backend.yaml #2: .*km2"):
+        compare_dirs_config([d, e], None)
+
+
+def test_compare_refuses_directories_with_different_calibrations_before_any_work(tmp_path, capsys):
+    """Through the CLI: the error names the directories, nothing is computed and OUT is not made."""
+    d, yard = tmp_path / "km", tmp_path / "yard"
+    d.mkdir()
+    yard.mkdir()
+    (d / "backend.yaml").write_text("backend_overrides: {}\n")
+    out = tmp_path / "cmp"
+    assert main(["compare", str(d), str(yard), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "different back-end calibrations" in err and str(yard) in err
+    assert not out.exists()

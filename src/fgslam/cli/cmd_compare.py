@@ -58,7 +58,7 @@ def with_backends(cfg, backends: str | None):
 def compare_cmd(
     directories: list[Path] = typer.Argument(..., help="One or more `fgslam sim` output directories."),
     out: Path = typer.Option(..., "--out", help="Output directory (table.md, results.json, PNGs, compare.rrd)."),
-    config: Path | None = typer.Option(None, "--config", help="YAML overrides of the comparison config."),
+    config: Path | None = typer.Option(None, "--config", help="YAML overrides of the comparison config (default: the directories' backend.yaml when they carry one, the same for all)."),
     backends: str | None = typer.Option(None, "--backends", help="Comma-separated back-ends (default ekf,isam2)."),
     no_rrd: bool = typer.Option(False, "--no-rrd", help="Skip the rerun recording file."),
     spawn: bool = typer.Option(False, "--spawn", help=SPAWN_HELP),
@@ -69,15 +69,13 @@ def compare_cmd(
     """Compare EKF and iSAM2 (each with and without the same relocalization fixes) on each DIR."""
     from rich.console import Console
 
-    from fgslam.cli.cmd_run import load_config, warn_unused_backend_yaml
+    from fgslam.cli.cmd_run import compare_dirs_config, load_config
     from fgslam.cli.viewer import live_url
     from fgslam.inputs import bag_topics, load_sim_dir
     from fgslam.io.outdir import OutputDir
 
     console = Console(stderr=True)
-    cfg = with_backends(load_config(config), backends)
-    for d in directories:
-        warn_unused_backend_yaml(d, config)
+    cfg = with_backends(load_config(compare_dirs_config(directories, config)), backends)
     live = live_url(spawn, serve, connect, console)
     with OutputDir(out, "compare", force=force) as od:  # checked, created and locked before any work
         topics = bag_topics(cfg.topics)
