@@ -136,6 +136,25 @@ class EkfConfig:
     # true 0.997, ATE 2.02 -> 0.88 m, position NEES 12.7 -> 1.40; docs/ekf.md). 0: no state
     slip_sigma: NonNegative = 0.05
     slip_walk_rsqrt_s: NonNegative = 5.0e-4
+    # Slip grows with the slope: wheels on loose soil lose more of the commanded distance uphill
+    # and less downhill (terramechanics; a rover's slip-vs-slope curve). With a sigma > 0 (and the
+    # slip state on) the filter estimates the gain as a state, slip = g + gain * (uphill pitch,
+    # rad): a slip learned on one slope otherwise drives the next with the wrong distance (my2020
+    # seed 1, 2 minutes without rock detections: slip learned at 0.066 on the flat, true -0.03 to
+    # -0.05 on the 3-5 deg downhill that followed: the estimate 0.52 m behind along-track in 6 m
+    # at a 0.26 m sigma, and the old map never found again). The prior (this, per rad, around 0)
+    # spans loose soil (a few per cent per degree); a random walk per sqrt(s) lets it follow the
+    # soil. 0: no state (only the white slope term of MotionNoiseConfig)
+    slope_slip_sigma_per_rad: NonNegative = 1.0
+    slope_slip_walk_rsqrt_s: NonNegative = 1.0e-3
+    # Around that bias the slip wanders with the soil under the wheels: correlated over tens of
+    # seconds, a first-order Gauss-Markov term o (d o = -o dt / tau + w, stationary sigma
+    # slip_gm_sigma) that neither the bias's slow random walk nor the white terms of
+    # MotionNoiseConfig represent: over a blind stretch of a few tau the distance error grows
+    # like sigma x distance, not like sqrt(distance). Defaults: the simulator's wheel-soil slip
+    # (sim.config.CmdConfig: 0.02 with tau 20 s, times the per-run slip gain, ~1.5). 0: no state
+    slip_gm_sigma: NonNegative = 0.03
+    slip_gm_tau_s: Positive = 20.0
     # when an update moves the pose more than this (m) from its first estimate, every first
     # estimate is replaced by the current one: a first-estimate Jacobian assumes small corrections
     # (after the consensus reset of a filter whose map is 1.5 m off, the landmark updates moved

@@ -64,7 +64,8 @@ def propagate(
     consistency", 2008). ``yaw_bias_radps``: the IMU heading's drift rate about world z, taken
     out of the increment (``R1 = Exp(-b dt e_z) R0 dR``; its Jacobian is the filter's, see
     :meth:`ekf.state.FilterState.yaw_bias_step`). ``slip``: the share of the commanded distance
-    not driven (``d = (1 - slip) v dt``; its Jacobian: :meth:`ekf.state.FilterState.slip_step`)."""
+    not driven on this step's slope (``d = (1 - slip) v dt``, :meth:`ekf.state.FilterState.slip_at`;
+    its Jacobian: :meth:`ekf.state.FilterState.slip_step`)."""
     dR = step.R_ref_base0.T @ step.R_ref_base1
     rotvec = log_so3(dR)
     R0 = R_world_base
@@ -76,7 +77,7 @@ def propagate(
     else:
         R_mid = R0 @ exp_so3(0.5 * rotvec)
         R1 = R0 @ dR
-    d_world = R_mid[:, 0] * ((1.0 - slip) * step.v_mps * step.dt)
+    d_world = R_mid[:, 0] * ((1.0 - slip) * step.v_mps * step.dt)  # slip: at this step's slope
     p1 = p_world + d_world
     F = np.eye(6)
     F[:3, 3:] = -skew(d_world if p_lin is None else p1 - p_lin)

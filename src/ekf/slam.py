@@ -35,7 +35,7 @@ from reloc.calibration import calibration_report
 from reloc.geometry import log_so3, project_so3
 from reloc.landmark_book import LandmarkBook
 from reloc.measurements import GlobalFix
-from reloc.odometry import OdometryStep
+from reloc.odometry import OdometryStep, uphill_rad
 from reloc.rows import RowBuffer
 
 log = logging.getLogger(__name__)
@@ -76,6 +76,16 @@ class EkfSlam(Backend):
             slip_col, head = head, head + 1
             P0 = np.block([[P0, np.zeros((slip_col, 1))],
                            [np.zeros((1, slip_col)), np.array([[self.config.slip_sigma ** 2]])]])
+        slope_col = -1
+        if slip_col >= 0 and self.config.slope_slip_sigma_per_rad > 0:  # the slip's growth with the slope
+            slope_col, head = head, head + 1
+            P0 = np.block([[P0, np.zeros((slope_col, 1))],
+                           [np.zeros((1, slope_col)), np.array([[self.config.slope_slip_sigma_per_rad ** 2]])]])
+        gm_col = -1
+        if slip_col >= 0 and self.config.slip_gm_sigma > 0:  # the slip's wander with the soil
+            gm_col, head = head, head + 1
+            P0 = np.block([[P0, np.zeros((gm_col, 1))],
+                           [np.zeros((1, gm_col)), np.array([[self.config.slip_gm_sigma ** 2]])]])
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
@@ -87,6 +97,8 @@ class EkfSlam(Backend):
             n_calib=n_calib,
             bias_col=bias_col,
             slip_col=slip_col,
+            slope_col=slope_col,
+            gm_col=gm_col,
             book=LandmarkBook(self.config.book),
             t_last_attitude=float(initial.t),
             t_last_checkpoint=float(initial.t),
@@ -195,6 +207,13 @@ class EkfSlam(Backend):
         if self._s.has_slip:
             g = self._s.slip_col
             extra["slip"] = {"estimate": round(self._s.slip, 5), "sigma": round(math.sqrt(self._s.P[g, g]), 5)}
+        if self._s.has_slope_slip:
+            k = self._s.slope_col
+            extra["slope_slip_per_rad"] = {"estimate": round(self._s.slope_gain, 5),
+                                           "sigma": round(math.sqrt(self._s.P[k, k]), 5)}
+        if self._s.gm_col >= 0:
+            k = self._s.gm_col
+            extra["slip_gm"] = {"estimate": round(self._s.slip_gm, 5), "sigma": round(math.sqrt(self._s.P[k, k]), 5)}
         return BackendStats(
             n_predict=c["n_predict"], n_landmark_frames=c["n_landmark_frames"],
             n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],
@@ -217,7 +236,7 @@ class EkfSlam(Backend):
 
     @property
     def state_vector_size(self) -> int:
-        """Dimension of the error state (6 [+ 4 calibration] [+ 1 yaw-rate bias] [+ 1 slip] + 3 x landmarks, tentative included)."""
+        """Dimension of the error state (6 [+ 4 calibration] [+ 1 yaw-rate bias] [+ 1 slip [+ 1 slope gain] [+ 1 slip wander]] + 3 x landmarks, tentative included)."""
         return int(self._s.P.shape[0])
 
     def full_covariance(self) -> np.ndarray:
@@ -255,7 +274,8 @@ class EkfSlam(Backend):
         if s.refresh_first_estimates(cfg.first_estimate_tol_m) and not self._replaying:
             self._count["n_first_estimate_resets"] += 1
         p0 = s.p_world
-        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin, s.yaw_bias, s.slip)
+        uphill = uphill_rad(step) if s.has_slope_slip else 0.0  # the slope under this step
+        p1, R1, F, Q = propagate(s.p_world, s.R_world_base, step, cfg.motion, s.p_lin, s.yaw_bias, s.slip_at(uphill))
         P = s.P
         Ppp = F @ P[:POSE_DIM, :POSE_DIM] @ F.T + Q
         if P.shape[0] > POSE_DIM:  # landmarks, or the calibration, yaw-rate bias and slip states
@@ -266,7 +286,9 @@ class EkfSlam(Backend):
         if s.has_yaw_bias:
             s.yaw_bias_step(step.dt, cfg.yaw_rate_bias_walk_radps_rsqrt_s ** 2 * step.dt)
         if s.has_slip:
-            s.slip_step(p1 - p0, cfg.slip_walk_rsqrt_s ** 2 * step.dt)
+            a = math.exp(-step.dt / cfg.slip_gm_tau_s)
+            s.slip_step(p1 - p0, cfg.slip_walk_rsqrt_s ** 2 * step.dt, uphill,
+                        cfg.slope_slip_walk_rsqrt_s ** 2 * step.dt, a, cfg.slip_gm_sigma ** 2 * (1.0 - a * a))
         s.p_world, s.R_world_base, s.t = p1, R1, step.t1
         if s.first_estimates:
             s.p_lin = p1.copy()

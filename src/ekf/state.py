@@ -1,15 +1,16 @@
 """The filter state: pose, landmarks, joint covariance, landmark book and schedule clocks.
 
 Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), (de (3), ds (1)),
-(db (1)), (dg (1)), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
+(db (1)), (dg (1), (dk (1)), (do (1))), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
 :mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
 :class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
 holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
 (see :class:`reloc.calibration.CalibrationConfig`). The optional yaw-rate bias ``b`` (rad/s) is the
 rate at which the IMU's reported heading drifts about world z (its gyro bias, once the IMU's own
 gravity reference has taken out roll and pitch). The optional slip ``g`` is the share of the
-commanded distance the wheels lose to the soil (``v_true = (1 - g) v``), a bias that a white model
-of slip cannot represent. The landmarks ``dl_i`` are 3D points of every
+commanded distance the wheels lose to the soil (``v_true = (1 - g - k theta - o) v``), a bias that a white model
+of slip cannot represent; the optional ``k`` is its growth per rad of uphill pitch ``theta`` and
+the optional ``o`` its first-order Gauss-Markov wander with the soil. The landmarks ``dl_i`` are 3D points of every
 landmark kind in one block; ``book.kind`` tags each with its kind (:mod:`ekf.kinds`).
 """
 
@@ -65,6 +66,10 @@ class FilterState:
     yaw_bias: float = 0.0  # rad/s: IMU heading drift about world z, R_imu ~ Exp(b t e_z) R_true
     slip_col: int = -1  # column of the wheel slip in P, -1 when not estimated
     slip: float = 0.0  # the share of the commanded distance not driven: v_true = (1 - slip) v
+    slope_col: int = -1  # column of the slip's gain per rad of uphill pitch, -1 when not estimated
+    slope_gain: float = 0.0  # slip = slip + slope_gain * uphill pitch (rad)
+    gm_col: int = -1  # column of the slip's Gauss-Markov term, -1 when not estimated
+    slip_gm: float = 0.0  # slip = slip + slope_gain * uphill + slip_gm
     calib_R: np.ndarray = field(default_factory=lambda: np.eye(3))  # E: true base point -> measured
     calib_s: float = 1.0  # measured / true range
     t_last_frame: dict = field(default_factory=dict)  # kind name -> time of its last frame used
@@ -92,6 +97,14 @@ class FilterState:
         return self.slip_col >= 0
 
     @property
+    def has_slope_slip(self) -> bool:
+        return self.slope_col >= 0
+
+    def slip_at(self, uphill_rad: float) -> float:
+        """The share of the commanded distance lost on a slope of ``uphill_rad`` (nose up positive)."""
+        return self.slip + (self.slope_gain * uphill_rad if self.slope_col >= 0 else 0.0) + self.slip_gm
+
+    @property
     def n_landmarks(self) -> int:
         return int(self.l_world.shape[0])
 
@@ -117,6 +130,10 @@ class FilterState:
             yaw_bias=self.yaw_bias,
             slip_col=self.slip_col,
             slip=self.slip,
+            slope_col=self.slope_col,
+            slope_gain=self.slope_gain,
+            gm_col=self.gm_col,
+            slip_gm=self.slip_gm,
             calib_R=self.calib_R.copy(),
             calib_s=self.calib_s,
             p_lin=None if self.p_lin is None else self.p_lin.copy(),
@@ -136,6 +153,10 @@ class FilterState:
             self.yaw_bias = self.yaw_bias + float(dx[self.bias_col])
         if self.slip_col >= 0:
             self.slip = self.slip + float(dx[self.slip_col])
+        if self.slope_col >= 0:
+            self.slope_gain = self.slope_gain + float(dx[self.slope_col])
+        if self.gm_col >= 0:
+            self.slip_gm = self.slip_gm + float(dx[self.gm_col])
         if self.n_landmarks:
             self.l_world = self.l_world + dx[self.head:].reshape(-1, 3)
 
@@ -196,17 +217,36 @@ class FilterState:
         P[:, th] = P[th, :]  # exactly symmetric (the two passes round differently)
         P[b, b] += walk_var
 
-    def slip_step(self, d_world: np.ndarray, walk_var: float) -> None:
+    def slip_step(self, d_world: np.ndarray, walk_var: float, uphill_rad: float = 0.0,
+                  slope_walk_var: float = 0.0, gm_decay: float = 1.0, gm_var: float = 0.0) -> None:
         """The slip's share of a prediction that drove ``d_world`` (3,) (the commanded motion
-        times ``1 - slip``): ``dp -= d_world / (1 - slip) dslip`` on the rows and columns of P
-        (O(n)), then the slip's random walk ``walk_var``."""
-        g, u = self.slip_col, d_world / (1.0 - self.slip)
+        times ``1 - slip_at(uphill_rad)``): ``dp -= u (dslip + uphill_rad dgain + dgm)`` with
+        ``u = d_world / (1 - slip_at(uphill_rad))``, on the rows and columns of P (O(n)); then
+        the random walks ``walk_var`` (slip) and ``slope_walk_var`` (its slope gain), and the
+        Gauss-Markov term's decay ``gm_decay`` (exp(-dt / tau)) and its noise ``gm_var``."""
+        u = d_world / (1.0 - self.slip_at(uphill_rad))
+        cols, U = [self.slip_col], [u]
+        if self.slope_col >= 0:
+            cols.append(self.slope_col)
+            U.append(uphill_rad * u)
+        if self.gm_col >= 0:
+            cols.append(self.gm_col)
+            U.append(u)
+        U = np.column_stack(U)
         P = self.P
-        P[:3, :] -= np.outer(u, P[g, :])
-        P[:, :3] -= np.outer(P[:, g], u)
+        P[:3, :] -= U @ P[cols, :]
+        P[:, :3] -= P[:, cols] @ U.T  # with the rows just updated: + U P_cc U^T
         P[:3, :3] = 0.5 * (P[:3, :3] + P[:3, :3].T)  # exactly symmetric (the two passes round differently)
         P[3:, :3] = P[:3, 3:].T
-        P[g, g] += walk_var
+        P[self.slip_col, self.slip_col] += walk_var
+        if self.slope_col >= 0:
+            P[self.slope_col, self.slope_col] += slope_walk_var
+        if self.gm_col >= 0:
+            k = self.gm_col
+            self.slip_gm *= gm_decay
+            P[k, :] *= gm_decay
+            P[:, k] *= gm_decay
+            P[k, k] += gm_var
 
     def landmark_cols(self, rows: np.ndarray) -> np.ndarray:
         """State columns (3k,) of the landmarks at ``rows`` (k,)."""

@@ -158,6 +158,13 @@ def step_translation(step: OdometryStep, dR: np.ndarray | None = None) -> np.nda
     return chord * (step.v_mps * step.dt / max(float(np.sqrt(chord @ chord)), 1e-12))
 
 
+def uphill_rad(step: OdometryStep) -> float:
+    """Signed pitch (rad) of base_link x over the horizontal during ``step``, nose up positive
+    (driving forward: uphill), the mean of its start and end (IMU gravity reference)."""
+    s = 0.5 * (float(step.R_ref_base0[2, 0]) + float(step.R_ref_base1[2, 0]))
+    return math.asin(min(max(s, -1.0), 1.0))
+
+
 def pitch_rad(step: OdometryStep) -> float:
     """|pitch| (rad) of base_link x over the horizontal at the end of ``step`` (IMU gravity reference)."""
     return math.asin(min(abs(float(step.R_ref_base1[2, 0])), 1.0))

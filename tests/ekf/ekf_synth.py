@@ -103,6 +103,16 @@ def overstate_commands(run: SynthRun, slip: float) -> SynthRun:
     return run
 
 
+def slope_commands(run: SynthRun, slip: float, gain_per_rad: float) -> SynthRun:
+    """``run`` with commands overstating the driven distance by ``slip + gain_per_rad * uphill``,
+    the uphill pitch (rad, nose up positive) of each step: wheels on loose soil lose more
+    uphill and less downhill."""
+    from reloc.odometry import uphill_rad
+
+    run.steps = [dataclasses.replace(s, v_mps=s.v_mps / (1.0 - slip - gain_per_rad * uphill_rad(s))) for s in run.steps]
+    return run
+
+
 def drift_heading(run: SynthRun, bias_radps: float) -> SynthRun:
     """``run`` with its IMU heading drifting at ``bias_radps`` about world z (a gyro bias)."""
     t0 = run.t[0]

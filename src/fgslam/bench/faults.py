@@ -153,6 +153,7 @@ def run_fault_bench(cfg: FaultBenchConfig, compare_cfg: CompareConfig | None = N
     from sim.simulate import simulate
 
     compare_cfg = compare_cfg or CompareConfig()
+    variants = variants_of(compare_cfg)
     tick = tick or (lambda name, total: (lambda: None))
     base = config_from_dict(SimConfig, sim_overrides or {})
     base = dataclasses.replace(base, world=cfg.world, seed=cfg.seed,
@@ -180,9 +181,9 @@ def run_fault_bench(cfg: FaultBenchConfig, compare_cfg: CompareConfig | None = N
                 wc = compare_world(inputs, compare_cfg, relocalizers=relocs)
             except Exception as exc:  # a crash is a result of this benchmark, reported per scenario
                 log.exception("scenario %s failed", name)
-                entry["runs"] = {k: {"error": f"{type(exc).__name__}: {exc}"} for k in VARIANTS}
+                entry["runs"] = {k: {"error": f"{type(exc).__name__}: {exc}"} for k in variants}
             else:
-                for k in VARIANTS:
+                for k in variants:
                     if name == FAULT_FREE:
                         free_ate[k] = float(np.sqrt(np.mean(_planar(wc.runs[k], wc.gt)[1] ** 2)))
                     entry["runs"][k] = fault_metrics(wc.runs[k], wc.gt, window, free_ate.get(k, math.nan),
@@ -190,8 +191,14 @@ def run_fault_bench(cfg: FaultBenchConfig, compare_cfg: CompareConfig | None = N
                 entry["wall_s"] = time.perf_counter() - w0
             results[name] = entry
             step()
-    return {"bench": config_to_dict(cfg), "compare_config": config_to_dict(compare_cfg),
+    return {"bench": config_to_dict(cfg), "compare_config": config_to_dict(compare_cfg), "variants": list(variants),
             "free_ate_online_m": free_ate, "scenarios": results}
+
+
+def variants_of(compare_cfg: CompareConfig) -> tuple[str, ...]:
+    """The passes a comparison with ``compare_cfg`` makes: each of its back-ends without and with
+    relocalization (the table's columns)."""
+    return tuple(run_key(b, r) for b in compare_cfg.backends for r in (False, True))
 
 
 def _cell(m: dict) -> str:
@@ -211,17 +218,18 @@ def _cell(m: dict) -> str:
 def markdown(res: dict) -> str:
     """The fault-scenario table (one row per scenario, one column per variant) and its key."""
     b = res["bench"]
+    variants = tuple(res.get("variants", VARIANTS))
     lines = [f"### Fault scenarios: {b['world']}, seed {b['seed']}, {b['distance_m']:g} m", "",
-             "| scenario | window [s] | " + " | ".join(run_label(k) for k in VARIANTS) + " | goals met |",
-             "|---|---|" + "---|" * len(VARIANTS) + "---|"]
+             "| scenario | window [s] | " + " | ".join(run_label(k) for k in variants) + " | goals met |",
+             "|---|---|" + "---|" * len(variants) + "---|"]
     for name, entry in res["scenarios"].items():
         w = entry["window_s"]
         win = f"{w[0]:.0f}-{w[1]:.0f}"
-        cells = [_cell(entry["runs"][k]) for k in VARIANTS]
+        cells = [_cell(entry["runs"][k]) for k in variants]
         if name == FAULT_FREE:
             met = "–"
         else:
-            goals = [goals_met(entry["runs"][k]) for k in VARIANTS]
+            goals = [goals_met(entry["runs"][k]) for k in variants]
             met = ", ".join(f"{g}: {sum(x[g] for x in goals)}/{len(goals)}" for g in goals[0])
         lines.append(f"| {name} | {win} | " + " | ".join(cells) + f" | {met} |")
     lines += ["", ("Cells: ATE m (final estimate) / end RMSE m over the last "
