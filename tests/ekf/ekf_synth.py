@@ -113,6 +113,21 @@ def slope_commands(run: SynthRun, slip: float, gain_per_rad: float) -> SynthRun:
     return run
 
 
+def wander_commands(run: SynthRun, slip: float, sigma: float, tau_s: float, seed: int) -> SynthRun:
+    """``run`` with commands overstating the driven distance by ``slip`` plus a first-order
+    Gauss-Markov wander (stationary ``sigma``, correlation time ``tau_s``, seeded): the soil
+    under the wheels changing along the way."""
+    rng = np.random.default_rng(seed)
+    o = sigma * rng.standard_normal()
+    steps = []
+    for s in run.steps:
+        a = np.exp(-s.dt / tau_s)
+        o = a * o + sigma * np.sqrt(1.0 - a * a) * rng.standard_normal()
+        steps.append(dataclasses.replace(s, v_mps=s.v_mps / (1.0 - slip - o)))
+    run.steps = steps
+    return run
+
+
 def drift_heading(run: SynthRun, bias_radps: float) -> SynthRun:
     """``run`` with its IMU heading drifting at ``bias_radps`` about world z (a gyro bias)."""
     t0 = run.t[0]

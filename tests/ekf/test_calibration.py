@@ -64,8 +64,8 @@ def test_rotation_and_scale_are_recovered_and_the_filter_stays_consistent(run):
 
 def test_off_by_default_and_bad_sigmas_rejected():
     ekf = EkfSlam(START)
-    assert ekf.calibration() == {} and ekf.state_vector_size == 6 + 4  # the pose, the yaw-rate bias, the slip (bias, slope gain, wander)
-    assert EkfSlam(START, EkfConfig(calibration=CalibrationConfig(scale_sigma=0.01))).state_vector_size == 14
+    assert ekf.calibration() == {} and ekf.state_vector_size == 6 + 2  # the pose, the yaw-rate bias, the slip
+    assert EkfSlam(START, EkfConfig(calibration=CalibrationConfig(scale_sigma=0.01))).state_vector_size == 12
     assert EkfSlam(START, EkfConfig(yaw_rate_bias_sigma_radps=0.0, slip_sigma=0.0)).state_vector_size == 6
     with pytest.raises(ConfigError, match="yaw_sigma_deg must be >= 0"):
         CalibrationConfig(yaw_sigma_deg=-1.0)

@@ -91,3 +91,15 @@ def test_cli_refuses_bad_options_before_any_work(tmp_path, capsys):
     assert "the scenarios set the faults block" in capsys.readouterr().err
     assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--distance-m", "nan"]) == 2
     assert not (tmp_path / "o").exists()
+
+
+def test_the_columns_follow_the_compare_configs_back_ends(blackout):
+    """A comparison of one back-end tabulates its two passes only (it used to fail on the missing
+    iSAM2 columns)."""
+    from fgslam.bench.faults import variants_of
+
+    assert variants_of(CompareConfig(backends=["ekf"], reference_backend="ekf")) == ("ekf", "ekf_reloc")
+    assert blackout["variants"] == list(VARIANTS)
+    only_ekf = dict(blackout, variants=["ekf", "ekf_reloc"])
+    header = next(line for line in markdown(only_ekf).splitlines() if line.startswith("| scenario"))
+    assert header.count(" | ") == 4 and "iSAM2" not in header
