@@ -30,7 +30,7 @@ from reloc.landmark_model import (
     point_to_world,
 )
 from reloc.measurements import RockObservations
-from reloc.persistence import persistence_slack
+from reloc.persistence import persistence_agree, persistence_slack
 
 
 def stacked_jacobian(H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
@@ -167,7 +167,7 @@ class RockUpdate:
             seen_ids = s.book.ids[cand[ci]]
             seen_det = det
             ok = s.recent.test(seen_ids, obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
-                               persistence_slack(a_cfg, z[det]))
+                               persistence_slack(a_cfg, z[det]), persistence_agree(a_cfg, S_hat[ci], Rz[det]))
             n_not_persistent = int(det.size - ok.sum())
             det, ci = det[ok], ci[ok]
         n_lone = 0

@@ -49,6 +49,15 @@ def persistence_slack(config: AssociationConfig, z_base: np.ndarray) -> np.ndarr
     return slack_variance(config.persistence_slack_m, config.persistence_slack_rad, r)
 
 
+def persistence_agree(config: AssociationConfig, S_hat: np.ndarray, R_z: np.ndarray) -> np.ndarray:
+    """(k,) how many earlier detections must agree with each pair (predicted covariance ``S_hat``
+    (k, 3, 3), measurement covariance ``R_z`` (k, 3, 3)): ``config.persistence_n_uncertain`` where
+    the prediction is far less certain than the measurement (``uncertain_ratio``), else 1."""
+    tr_S = np.trace(np.reshape(S_hat, (-1, 3, 3)), axis1=1, axis2=2)
+    tr_R = np.trace(np.reshape(R_z, (-1, 3, 3)), axis1=1, axis2=2)
+    return np.where(tr_S > config.uncertain_ratio * tr_R, config.persistence_n_uncertain, 1)
+
+
 class RecentDetections:
     """Per landmark id, its detections of the last seconds in world coordinates (position (3,),
     covariance (3, 3)), at most ``depth`` each. :meth:`copy` gives an independent snapshot (the
@@ -82,16 +91,16 @@ class RecentDetections:
             del entries[: -self.depth]
 
     def confirm(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray,
-                window_s: float, gate_chi2: float, slack_var=0.0) -> np.ndarray:
+                window_s: float, gate_chi2: float, slack_var=0.0, min_agree=1) -> np.ndarray:
         """:meth:`test`, then :meth:`record` of the same detections (a back-end that places them
         no better after its update)."""
-        ok = self.test(ids, t, xyz_world, cov_world, window_s, gate_chi2, slack_var)
+        ok = self.test(ids, t, xyz_world, cov_world, window_s, gate_chi2, slack_var, min_agree)
         if window_s > 0:
             self.record(ids, t, xyz_world, cov_world)
         return ok
 
     def test(self, ids: np.ndarray, t: float, xyz_world: np.ndarray, cov_world: np.ndarray,
-             window_s: float, gate_chi2: float, slack_var=0.0) -> np.ndarray:
+             window_s: float, gate_chi2: float, slack_var=0.0, min_agree=1) -> np.ndarray:
         """(k,) bool: whether each detection (``xyz_world`` (k, 3), ``cov_world`` (k, 3, 3)) of
         landmark ``ids`` (k,) at ``t`` has an earlier detection of the same landmark within
         ``window_s`` (strictly before ``t``) inside ``gate_chi2`` (on the two covariances plus
@@ -99,7 +108,10 @@ class RecentDetections:
         :meth:`record` them once placed (an EKF after its update: placed with the pose the
         frame's update gave, the next frame compares against where the rocks are, not against
         where the pose before the correction put them; a test biased against its own corrections
-        made the EKF inconsistent). ``window_s`` 0: every detection passes."""
+        made the EKF inconsistent). ``min_agree`` (scalar or (k,)): how many earlier detections
+        in the window must agree (a detection whose landmark is predicted far less certainly
+        than it is measured asks for two: see ``AssociationConfig.persistence_n_uncertain``).
+        ``window_s`` 0: every detection passes."""
         ids = np.asarray(ids, dtype=int).reshape(-1)
         k = ids.size
         if window_s <= 0 or k == 0:
@@ -107,6 +119,7 @@ class RecentDetections:
         xyz = np.reshape(np.asarray(xyz_world, dtype=float), (k, 3))
         cov = np.reshape(np.asarray(cov_world, dtype=float), (k, 3, 3))
         slack = np.broadcast_to(np.asarray(slack_var, dtype=float), (k,))
+        need = np.broadcast_to(np.asarray(min_agree, dtype=int), (k,))
         ok = np.zeros(k, dtype=bool)
         rows, x0, c0 = [], [], []  # every (detection, earlier detection) pair in the window
         for i, lid in enumerate(ids):
@@ -120,7 +133,8 @@ class RecentDetections:
             d = xyz[r] - np.array(x0)
             S = cov[r] + np.array(c0) + slack[r, None, None] * np.eye(3)
             d2 = np.einsum("ki,ki->k", d, np.linalg.solve(S, d[..., None])[..., 0])
-            ok[r[d2 <= gate_chi2]] = True
+            agree = np.bincount(r[d2 <= gate_chi2], minlength=k)
+            ok = agree >= need
         self._horizon_s = max(self._horizon_s, window_s)
         if t - self._t_sweep > _SWEEP_EVERY_S:
             self.sweep(t)

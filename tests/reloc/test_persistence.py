@@ -123,3 +123,29 @@ def test_the_slack_grows_with_range_for_a_heading_the_odometry_does_not_follow()
     rd = RecentDetections()
     assert not _confirm(rd, 1, 0.0, x, far)
     assert _confirm(rd, 1, 0.5, moved, far, slack=slack_variance(0.02, 0.005, [10.0]))
+
+
+def test_an_uncertain_pair_needs_two_earlier_detections_at_the_same_place():
+    """A landmark predicted far less certainly than it is measured (a rock unseen through a blind
+    spell) needs two earlier detections that agree: a rock detected frame after frame passes one
+    frame later, clutter that agreed once by chance does not."""
+    from reloc.persistence import persistence_agree
+
+    ac = AssociationConfig(persistence_n_uncertain=2)
+    S_sure, S_wide = np.tile(R, (1, 1, 1)), np.tile(np.eye(3) * 0.2**2, (1, 1, 1))
+    assert persistence_agree(ac, S_sure, R[None]).tolist() == [1]
+    assert persistence_agree(ac, S_wide, R[None]).tolist() == [2]  # trace ratio 70 > 16
+    assert persistence_agree(AssociationConfig(), S_wide, R[None]).tolist() == [1]  # the default: one
+    x = np.array([2.0, 0.5, 0.0])
+    rd = RecentDetections()
+
+    def confirm(t, p, need):
+        return bool(rd.confirm(np.array([4]), t, p[None], R[None], 2.5, GATE, 0.0, need)[0])
+
+    assert not confirm(10.0, x, 2)
+    assert not confirm(11.0, x + 0.01, 2)  # one earlier detection agrees: not enough
+    assert confirm(12.0, x - 0.01, 2)  # two agree
+    rd2 = RecentDetections()
+    assert not rd2.confirm(np.array([4]), 10.0, x[None], R[None], 2.5, GATE, 0.0, 2)[0]
+    rd2.confirm(np.array([4]), 11.0, (x + [0.6, 0, 0])[None], R[None], 2.5, GATE, 0.0, 2)  # elsewhere in the gate
+    assert not rd2.confirm(np.array([4]), 12.0, (x + 0.01)[None], R[None], 2.5, GATE, 0.0, 2)[0]  # one of two

@@ -21,7 +21,7 @@ from reloc.association import associate
 from reloc.budget import innovation_trace, select_observations
 from reloc.geometry import skew
 from reloc.landmark_model import point_in_base, point_to_world
-from reloc.persistence import RecentDetections, persistence_slack
+from reloc.persistence import RecentDetections, persistence_agree, persistence_slack
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
 _VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
@@ -173,7 +173,8 @@ class LandmarkStore:
         if matched.size and ac.persistence_s > 0:  # clutter inside a gate: not seen there before
             ids = [cands[int(a.landmark_of[i])].lid for i in matched]
             ok = self.recent.confirm(ids, t, l_new[matched], c_new[matched], ac.persistence_s, ac.gate_chi2,
-                                     persistence_slack(ac, z_base[matched]))
+                                     persistence_slack(ac, z_base[matched]),
+                                     persistence_agree(ac, S_hat[a.landmark_of[matched]], R_z[matched]))
             n_not_persistent = int(matched.size - ok.sum())
             self.n_not_persistent += n_not_persistent
             matched = matched[ok]
