@@ -66,26 +66,23 @@ class EkfSlam(Backend):
             prior = cal.prior_sigmas() ** 2  # a zero sigma keeps that term nominal
             P0 = np.block([[P0, np.zeros((POSE_DIM, CALIB_DIM))], [np.zeros((CALIB_DIM, POSE_DIM)), np.diag(prior)]])
         n_calib = head - POSE_DIM
-        bias_col = -1
-        if self.config.yaw_rate_bias_sigma_radps > 0:  # the IMU heading's drift rate, last of the head
-            bias_col, head = head, head + 1
-            P0 = np.block([[P0, np.zeros((bias_col, 1))],
-                           [np.zeros((1, bias_col)), np.array([[self.config.yaw_rate_bias_sigma_radps ** 2]])]])
-        slip_col = -1
-        if self.config.slip_sigma > 0:  # the wheels' slip bias, after it
-            slip_col, head = head, head + 1
-            P0 = np.block([[P0, np.zeros((slip_col, 1))],
-                           [np.zeros((1, slip_col)), np.array([[self.config.slip_sigma ** 2]])]])
-        slope_col = -1
-        if slip_col >= 0 and self.config.slope_slip_sigma_per_rad > 0:  # the slip's growth with the slope
-            slope_col, head = head, head + 1
-            P0 = np.block([[P0, np.zeros((slope_col, 1))],
-                           [np.zeros((1, slope_col)), np.array([[self.config.slope_slip_sigma_per_rad ** 2]])]])
-        gm_col = -1
-        if slip_col >= 0 and self.config.slip_gm_sigma > 0:  # the slip's wander with the soil
-            gm_col, head = head, head + 1
-            P0 = np.block([[P0, np.zeros((gm_col, 1))],
-                           [np.zeros((1, gm_col)), np.array([[self.config.slip_gm_sigma ** 2]])]])
+        cfg = self.config
+
+        def scalar_state(on: bool, sigma: float) -> int:
+            """Append a scalar state with prior ``sigma`` to the head when ``on``: its column, or -1."""
+            nonlocal P0, head
+            if not on:
+                return -1
+            col, head = head, head + 1
+            P0 = np.block([[P0, np.zeros((col, 1))], [np.zeros((1, col)), np.array([[sigma ** 2]])]])
+            return col
+
+        # after the calibration: the IMU heading's drift rate, then the wheels' slip bias, its
+        # growth with the slope and its wander with the soil
+        bias_col = scalar_state(cfg.yaw_rate_bias_sigma_radps > 0, cfg.yaw_rate_bias_sigma_radps)
+        slip_col = scalar_state(cfg.slip_sigma > 0, cfg.slip_sigma)
+        slope_col = scalar_state(slip_col >= 0 and cfg.slope_slip_sigma_per_rad > 0, cfg.slope_slip_sigma_per_rad)
+        gm_col = scalar_state(slip_col >= 0 and cfg.slip_gm_sigma > 0, cfg.slip_gm_sigma)
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
@@ -211,7 +208,7 @@ class EkfSlam(Backend):
             k = self._s.slope_col
             extra["slope_slip_per_rad"] = {"estimate": round(self._s.slope_gain, 5),
                                            "sigma": round(math.sqrt(self._s.P[k, k]), 5)}
-        if self._s.gm_col >= 0:
+        if self._s.has_slip_gm:
             k = self._s.gm_col
             extra["slip_gm"] = {"estimate": round(self._s.slip_gm, 5), "sigma": round(math.sqrt(self._s.P[k, k]), 5)}
         return BackendStats(
@@ -286,7 +283,7 @@ class EkfSlam(Backend):
         if s.has_yaw_bias:
             s.yaw_bias_step(step.dt, cfg.yaw_rate_bias_walk_radps_rsqrt_s ** 2 * step.dt)
         if s.has_slip:
-            a = math.exp(-step.dt / cfg.slip_gm_tau_s)
+            a = math.exp(-step.dt / cfg.slip_gm_tau_s) if s.has_slip_gm else 1.0
             s.slip_step(p1 - p0, cfg.slip_walk_rsqrt_s ** 2 * step.dt, uphill,
                         cfg.slope_slip_walk_rsqrt_s ** 2 * step.dt, a, cfg.slip_gm_sigma ** 2 * (1.0 - a * a))
         s.p_world, s.R_world_base, s.t = p1, R1, step.t1

@@ -100,9 +100,13 @@ class FilterState:
     def has_slope_slip(self) -> bool:
         return self.slope_col >= 0
 
+    @property
+    def has_slip_gm(self) -> bool:
+        return self.gm_col >= 0
+
     def slip_at(self, uphill_rad: float) -> float:
         """The share of the commanded distance lost on a slope of ``uphill_rad`` (nose up positive)."""
-        return self.slip + (self.slope_gain * uphill_rad if self.slope_col >= 0 else 0.0) + self.slip_gm
+        return self.slip + self.slope_gain * uphill_rad + self.slip_gm  # both 0 unless states
 
     @property
     def n_landmarks(self) -> int:
@@ -226,10 +230,10 @@ class FilterState:
         Gauss-Markov term's decay ``gm_decay`` (exp(-dt / tau)) and its noise ``gm_var``."""
         u = d_world / (1.0 - self.slip_at(uphill_rad))
         cols, U = [self.slip_col], [u]
-        if self.slope_col >= 0:
+        if self.has_slope_slip:
             cols.append(self.slope_col)
             U.append(uphill_rad * u)
-        if self.gm_col >= 0:
+        if self.has_slip_gm:
             cols.append(self.gm_col)
             U.append(u)
         U = np.column_stack(U)
@@ -241,7 +245,7 @@ class FilterState:
         P[self.slip_col, self.slip_col] += walk_var
         if self.slope_col >= 0:
             P[self.slope_col, self.slope_col] += slope_walk_var
-        if self.gm_col >= 0:
+        if self.has_slip_gm:
             k = self.gm_col
             self.slip_gm *= gm_decay
             P[k, :] *= gm_decay

@@ -97,6 +97,14 @@ class Association:
         return det, self.landmark_of[det]
 
 
+def uncertain_pairs(config: AssociationConfig, S_hat: np.ndarray, R_z: np.ndarray) -> np.ndarray:
+    """(k,) bool: pairs whose landmark is predicted far less certainly than it is measured,
+    ``trace(S_hat) > config.uncertain_ratio * trace(R_z)`` (``S_hat``, ``R_z`` (k, 3, 3))."""
+    tr_S = np.trace(np.reshape(S_hat, (-1, 3, 3)), axis1=1, axis2=2)
+    tr_R = np.trace(np.reshape(R_z, (-1, 3, 3)), axis1=1, axis2=2)
+    return tr_S > config.uncertain_ratio * tr_R
+
+
 def pairwise_d2(
     z_base: np.ndarray, R_z: np.ndarray, zhat_base: np.ndarray, S_hat: np.ndarray, cap: float = np.inf
 ) -> np.ndarray:
@@ -172,9 +180,7 @@ def associate(
         det, cand, n_jc = _joint_compatible(det, cand, d2, z_base, zhat_base, R_z, S_hat, config, joint_cov)
         n_unc = 0
         if 0 < det.size < config.min_pairs_uncertain:
-            tr_S = np.trace(S_hat[cand], axis1=1, axis2=2)
-            tr_R = np.trace(R_z[det], axis1=1, axis2=2)
-            if np.all(tr_S > config.uncertain_ratio * tr_R):
+            if np.all(uncertain_pairs(config, S_hat[cand], R_z[det])):
                 det, cand, n_unc = det[:0], cand[:0], int(det.size)
         landmark_of[det] = cand
         d2_out[det] = d2[det, cand]

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reloc.association import AssociationConfig, pairwise_d2
+from reloc.association import AssociationConfig, pairwise_d2, uncertain_pairs
 
 _SWEEP_EVERY_S = 10.0
 
@@ -52,10 +52,9 @@ def persistence_slack(config: AssociationConfig, z_base: np.ndarray) -> np.ndarr
 def persistence_agree(config: AssociationConfig, S_hat: np.ndarray, R_z: np.ndarray) -> np.ndarray:
     """(k,) how many earlier detections must agree with each pair (predicted covariance ``S_hat``
     (k, 3, 3), measurement covariance ``R_z`` (k, 3, 3)): ``config.persistence_n_uncertain`` where
-    the prediction is far less certain than the measurement (``uncertain_ratio``), else 1."""
-    tr_S = np.trace(np.reshape(S_hat, (-1, 3, 3)), axis1=1, axis2=2)
-    tr_R = np.trace(np.reshape(R_z, (-1, 3, 3)), axis1=1, axis2=2)
-    return np.where(tr_S > config.uncertain_ratio * tr_R, config.persistence_n_uncertain, 1)
+    the prediction is far less certain than the measurement (:func:`reloc.association.uncertain_pairs`),
+    else 1."""
+    return np.where(uncertain_pairs(config, S_hat, R_z), config.persistence_n_uncertain, 1)
 
 
 class RecentDetections:

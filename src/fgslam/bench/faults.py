@@ -41,7 +41,6 @@ log = logging.getLogger(__name__)
 
 Tick = Callable[[str, int], Callable[[], None]]
 FAULT_FREE = "none"
-VARIANTS = tuple(run_key(b, r) for b in ("ekf", "isam2") for r in (False, True))
 END_RATIO_GOAL = 2.0
 
 
@@ -199,6 +198,9 @@ def variants_of(compare_cfg: CompareConfig) -> tuple[str, ...]:
     """The passes a comparison with ``compare_cfg`` makes: each of its back-ends without and with
     relocalization (the table's columns)."""
     return tuple(run_key(b, r) for b in compare_cfg.backends for r in (False, True))
+
+
+VARIANTS = variants_of(CompareConfig())  # the default comparison's columns (results without "variants")
 
 
 def _cell(m: dict) -> str:
