@@ -19,14 +19,15 @@ from reloc.measurements import GlobalFix
 
 
 def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig,
-                     min_size_m: float = 0.0) -> np.ndarray:
+                     min_size_m: float = 0.0, usable: np.ndarray | None = None) -> np.ndarray:
     """Indices of the landmarks used for matching: n_obs >= min_obs and size >= ``min_size_m``
-    within ``max_radius_m`` of the rover (``sparse_radius_m`` where fewer than ``sparse_below``
-    are that near), at most ``max_landmarks`` of them, the largest (or the nearest,
-    ``cfg.select``) first."""
+    (and ``usable`` (N,) where given) within ``max_radius_m`` of the rover (``sparse_radius_m``
+    where fewer than ``sparse_below`` are that near), at most ``max_landmarks`` of them, the
+    largest (or the nearest, ``cfg.select``) first."""
     if len(lmap) == 0:
         return np.zeros(0, dtype=int)
-    ok = np.flatnonzero((lmap.n_obs >= cfg.min_obs) & (lmap.size_m >= min_size_m))
+    ok = (lmap.n_obs >= cfg.min_obs) & (lmap.size_m >= min_size_m)
+    ok = np.flatnonzero(ok if usable is None else ok & np.asarray(usable, dtype=bool))
     d = np.linalg.norm(lmap.xyz_world_m[ok, :2] - np.asarray(xy_rover)[:2], axis=1)
     radius = cfg.max_radius_m
     if np.count_nonzero(d <= radius) < cfg.sparse_below:  # sparse ground: a wider map
@@ -37,6 +38,24 @@ def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerCo
     else:
         order = np.argsort(d, kind="stable")
     return np.sort(ok[order[: cfg.max_landmarks]])
+
+
+def rover_relative_cov_xy(landmark_cov_xy: np.ndarray, rover_cov_xy: np.ndarray) -> np.ndarray:
+    """(N, 2, 2): the uncertainty of the rover's planar position relative to each landmark that
+    the rover has gained since the landmark was last seen: the positive part of ``rover_cov_xy``
+    (2, 2) less the landmark's ``landmark_cov_xy`` (N, 2, 2), both in the world.
+
+    A landmark is placed from the rover's poses, so its world covariance holds the rover's at the
+    time it was seen (plus its measurements'); the two share that drift, which cancels between
+    them. What the rover's covariance holds beyond it is the drift since: about 0 for a landmark
+    in view (its covariance holds the rover's now), the drift while blind for one last seen before
+    a camera blackout. An approximation where the joint covariance is not at hand (the smoother's
+    map, landmarks a back-end has dropped): it takes the rover's growth since as uncorrelated
+    with the landmark."""
+    L = np.asarray(landmark_cov_xy, dtype=float).reshape(-1, 2, 2)
+    D = np.asarray(rover_cov_xy, dtype=float)[None, :2, :2] - L
+    w, V = np.linalg.eigh(0.5 * (D + np.swapaxes(D, 1, 2)))
+    return np.einsum("nij,nj,nkj->nik", V, np.clip(w, 0.0, None), V)
 
 
 def fix_from_similarity(
@@ -51,13 +70,16 @@ def fix_from_similarity(
     map_var_m2: float = 0.0,
     similarity_cov: np.ndarray | None = None,
     cov_scale: float = 1.0,
+    relative_cov_xy: np.ndarray | None = None,
 ) -> GlobalFix:
     """Rover fix at ``est.t`` from a local->world similarity and its inliers (K, 2) in the local (estimated world) frame.
 
     With ``similarity_cov`` (4, 4) over (tx_m, ty_m, theta_rad, scale) from the matcher, the fix
     covariance is its first-order propagation through xy = s R xy_est + t, yaw = yaw_est + theta
     (times ``inflation``^2, plus the map term); otherwise the inlier-geometry formula of the
-    module doc is used."""
+    module doc is used. ``relative_cov_xy`` (2, 2): the rover's uncertainty relative to the
+    inliers (:func:`rover_relative_cov_xy`, weighted as in the fit), added to the position's:
+    one drift that every inlier shares, so it does not average down."""
     L = np.asarray(local_inliers_xy, float).reshape(-1, 2)
     n = L.shape[0]
     if n < 3:
@@ -91,6 +113,8 @@ def fix_from_similarity(
         cov[:2, :2] = sigma2 / n * np.eye(2) + var_yaw * np.outer(perp, perp)
         cov[:2, 2] = cov[2, :2] = var_yaw * perp
         cov[2, 2] = var_yaw
+    if relative_cov_xy is not None:
+        cov[:2, :2] += 0.5 * (relative_cov_xy + np.transpose(relative_cov_xy))
     return GlobalFix(
         t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
         cov_xyyaw=cov * cov_scale, n_inliers=n, rmse_m=float(rmse_m),
@@ -194,13 +218,15 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     heading stays the estimate's with ``single_sigma_yaw_rad`` (no heading information).
 
     Its planar covariance is the catalog's ``sigma_m`` per axis plus the landmark's error
-    relative to the rover, taken as its world covariance less the rover's (the landmark is
-    placed from the rover's poses, so their shared drift cancels; never below
+    relative to the rover, taken as the difference of its world covariance and the rover's,
+    either way (the landmark is placed from the rover's poses, so their shared drift cancels;
+    what the landmark holds beyond the rover is its own error, what the rover holds beyond the
+    landmark its drift since it was last seen, :func:`rover_relative_cov_xy`; never below
     ``sigma_floor_m``), times ``inflation``^2 as a matched fix's (unmodelled errors of the rim's
     centre on both sides)."""
     rel = np.asarray(landmark_cov_xy, float) - np.asarray(est.cov[:2, :2], float)
     w, V = np.linalg.eigh(0.5 * (rel + rel.T))
-    rel = (V * np.maximum(w, cfg.sigma_floor_m ** 2)) @ V.T
+    rel = (V * np.maximum(np.abs(w), cfg.sigma_floor_m ** 2)) @ V.T
     cov = np.zeros((3, 3))
     cov[:2, :2] = cfg.inflation ** 2 * (sigma_m ** 2 * np.eye(2) + rel)
     cov[2, 2] = cfg.single_sigma_yaw_rad ** 2

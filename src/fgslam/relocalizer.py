@@ -34,6 +34,7 @@ from fgslam.match_to_fix import (
     fix_from_similarity,
     fix_from_single,
     identify_single,
+    rover_relative_cov_xy,
     rover_weighted_fit,
     select_local_map,
 )
@@ -179,7 +180,11 @@ class Relocalizer:
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
         if self.window is not None:  # with the landmarks the back-end dropped on the recent path
             lmap = self.window.update(lmap, est.position_m)
-        idx = select_local_map(lmap, est.position_m, cfg, self.min_size_m)
+        rel = self._relative_covs(lmap, est)
+        usable = None
+        if rel is not None:  # landmarks the rover has drifted from since are not matched
+            usable = np.linalg.eigvalsh(rel)[:, -1] <= (cfg.max_relative_sigmas * self._matcher_config().sigma_m) ** 2
+        idx = select_local_map(lmap, est.position_m, cfg, self.min_size_m, usable)
         if idx.size < cfg.min_landmarks:
             single = self._single(lmap, idx, est, est_xyyaw, 0.0)
             return single or FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
@@ -220,11 +225,18 @@ class Relocalizer:
                 L, W, est.position_m[:2], cfg.fit_radius_m, self._fit_floor_sigma_m)
         cov_lm = lmap.cov_world_m2[idx[pairs[:, 0]]]
         map_var = float(np.mean(0.5 * (cov_lm[:, 0, 0] + cov_lm[:, 1, 1]))) if len(cov_lm) else 0.0
+        rel_fix = None
+        if rel is not None:  # the inliers' drift from the rover, weighted as the fit weighs them
+            w = np.ones(len(L))
+            if cfg.fit_radius_m is not None:
+                w = 1.0 / (1.0 + np.sum((L - est.position_m[:2]) ** 2, axis=1) / cfg.fit_radius_m**2)
+            rel_fix = np.einsum("k,kij->ij", w / w.sum(), rel[idx[pairs[:, 0]]])
         try:
             fix = fix_from_similarity(
                 est, rotation, translation, scale, L, rmse, cfg, t_recv=est.t + latency, map_var_m2=map_var,
                 similarity_cov=sim_cov,
                 cov_scale=self._correlation_scale(est.t, pairs[:, 1]),
+                relative_cov_xy=rel_fix,
             )
         except RelocalizerError as exc:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
@@ -245,11 +257,7 @@ class Relocalizer:
             from scipy.spatial import cKDTree
 
             self._single_tree = cKDTree(self.catalog.xy_m)
-        mc = self._mcfg if self._mcfg is not None else getattr(self.matcher, "config", None)
-        if mc is None:  # a given matcher without a MatcherConfig: the matcher's defaults
-            from reloc.matcher import MatcherConfig
-
-            mc = MatcherConfig()
+        mc = self._matcher_config()
         sigma_m = float(mc.sigma_m)
         hit = identify_single(lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
                               self._single_tree, cfg, sigma_m, mc.size_ratio_max)
@@ -265,6 +273,24 @@ class Relocalizer:
                   hit.false_alarm)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy[None, :], c_xy[None, :], est_xyyaw,
                           single=True, false_alarm=hit.false_alarm)
+
+    def _matcher_config(self):
+        """The matcher's :class:`reloc.matcher.MatcherConfig` (its defaults for a given matcher
+        that has none)."""
+        mc = self._mcfg if self._mcfg is not None else getattr(self.matcher, "config", None)
+        if mc is None:
+            from reloc.matcher import MatcherConfig
+
+            mc = MatcherConfig()
+        return mc
+
+    def _relative_covs(self, lmap: LandmarkMap, est: PoseEstimate) -> np.ndarray | None:
+        """(N, 2, 2) the rover's planar uncertainty relative to each landmark of ``lmap``
+        (:func:`fgslam.match_to_fix.rover_relative_cov_xy`); None when the rule is off
+        (``max_relative_sigmas`` None), the estimate is lost or the map empty."""
+        if self.config.max_relative_sigmas is None or len(lmap) == 0 or est.planar_sigma_m > self.config.lost_sigma_m:
+            return None
+        return rover_relative_cov_xy(lmap.cov_world_m2[:, :2, :2], np.asarray(est.cov)[:2, :2])
 
     def _match_cropped(self, local_xy: np.ndarray, local_size: np.ndarray, prior):
         """Match against the catalog rocks that can hold the map under ``prior``; returns the

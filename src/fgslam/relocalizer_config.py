@@ -69,6 +69,17 @@ class RelocalizerConfig:
     sigma_yaw_floor_rad: NonNegative = 0.003
     inflation: Annotated[float, Ge(1)] = 1.75  # multiplies the residual sigma (unmodelled map distortion)
     map_cov_weight: NonNegative = 0.0  # weight of the landmarks' own planar covariance in sigma^2
+    # A fix moves the rover with its map, so it is only as good as the rover's place relative to
+    # the matched landmarks. A landmark placed from the rover's poses shares their drift; what the
+    # rover has gained in uncertainty since the landmark was last seen (a camera blackout, a
+    # stretch without rocks, metres of path) is its uncertainty relative to the rover, which no
+    # match on it removes (fgslam.match_to_fix.rover_relative_cov_xy). Landmarks whose relative
+    # sigma exceeds this many matcher sigmas are not matched (the map's old part would otherwise
+    # outvote the part seen since and repeat the drifted pose: my2020 seed 1, a 120 s blackout,
+    # EKF + reloc: 14 fixes 0.56-0.60 m off claiming 0.16-0.28 m); the inliers' relative
+    # covariance, weighted as in the fit, is added to the fix's. None: every landmark, nothing
+    # added. Not applied while lost (the whole map is then relative to an unknown start).
+    max_relative_sigmas: Positive | None = 2.0
     # The fix describes the rover, so the final fit weighs each matched rock by how well the map
     # ties it to the rover: w = 1 / (1 + (d / fit_radius_m)^2) at distance d from the rover (a
     # relative map error that grows with distance and equals the catalog's at fit_radius_m),

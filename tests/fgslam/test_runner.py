@@ -402,7 +402,9 @@ def test_tracking_verifies_the_estimate_and_searches_when_it_is_off(stream):
     yaw = np.radians(8.0)
     R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
     off = np.array([1.5, 0.0, 0.0])
-    moved = LandmarkMap(lmap.ids, lmap.xyz_world_m @ R.T + off, lmap.cov_world_m2, lmap.size_m, lmap.n_obs, "rocks")
+    # (the map placed from the drifted poses: their 1 m sigma is in its covariance too)
+    moved = LandmarkMap(lmap.ids, lmap.xyz_world_m @ R.T + off, lmap.cov_world_m2 + np.eye(3), lmap.size_m,
+                        lmap.n_obs, "rocks")
     T = est.T_world_base.copy()
     T[:3, :3], T[:3, 3] = R @ T[:3, :3], R @ T[:3, 3] + off
     drifted = PoseEstimate(est.t, T, np.eye(6) * 1.0)

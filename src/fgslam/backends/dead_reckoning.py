@@ -54,11 +54,13 @@ class DeadReckoningError(FgslamError):
 
 
 class _PointMap:
-    """One kind's world-frame map: positions (N, 3), covariances (N, 3, 3), sizes, counts."""
+    """One kind's world-frame map: positions (N, 3), covariances (N, 3, 3) of the sightings
+    fused, the rover's position covariance when each was last seen (N, 3, 3), sizes, counts."""
 
     def __init__(self) -> None:
         self.xyz = np.zeros((0, 3))
         self.cov = np.zeros((0, 3, 3))
+        self.pose_cov = np.zeros((0, 3, 3))
         self.size = np.zeros(0)
         self.n = np.zeros(0, dtype=int)
 
@@ -132,6 +134,7 @@ class DeadReckoning(Backend):
                     P_new = np.linalg.inv(Pj_inv + Pk_inv)
                     lm.xyz[j] = P_new @ (Pj_inv @ lm.xyz[j] + Pk_inv @ xyz_w[k])
                     lm.cov[j] = 0.5 * (P_new + P_new.T)
+                    lm.pose_cov[j] = self._P[:3, :3]
                     m = lm.n[j]
                     lm.size[j] = (m * lm.size[j] + obs.size_m[k]) / (m + 1)
                     lm.n[j] += 1
@@ -139,6 +142,7 @@ class DeadReckoning(Backend):
                     continue
             lm.xyz = np.vstack([lm.xyz, xyz_w[k]])
             lm.cov = np.concatenate([lm.cov, cov_w[k][None]])
+            lm.pose_cov = np.concatenate([lm.pose_cov, self._P[None, :3, :3]])
             lm.size = np.append(lm.size, obs.size_m[k])
             lm.n = np.append(lm.n, 1)
             n_new += 1
@@ -186,7 +190,9 @@ class DeadReckoning(Backend):
         return PoseEstimate(self._t, self._T.copy(), self._P.copy())
 
     def landmark_map(self, kind: str) -> LandmarkMap:
-        """The map of ``kind`` built at the dead-reckoned poses, in the world frame."""
+        """The map of ``kind`` built at the dead-reckoned poses, in the world frame; each
+        landmark's covariance is its sightings' plus the rover's position covariance when it was
+        last seen (where it is in the world, as :class:`reloc.backend.LandmarkMap` says)."""
         try:
             kind_named(kind)
         except UnknownKindError as exc:
@@ -197,7 +203,7 @@ class DeadReckoning(Backend):
         return LandmarkMap(
             ids=np.arange(len(lm.xyz)),
             xyz_world_m=lm.xyz.copy(),
-            cov_world_m2=lm.cov.copy(),
+            cov_world_m2=lm.cov + lm.pose_cov,
             size_m=lm.size.copy(),
             n_obs=lm.n.copy(),
             kind=kind,
