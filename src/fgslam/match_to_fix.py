@@ -113,11 +113,12 @@ def fix_from_similarity(
         cov[:2, :2] = sigma2 / n * np.eye(2) + var_yaw * np.outer(perp, perp)
         cov[:2, 2] = cov[2, :2] = var_yaw * perp
         cov[2, 2] = var_yaw
-    if relative_cov_xy is not None:
+    cov = cov * cov_scale
+    if relative_cov_xy is not None:  # the rover's drift from its map: no catalog error to scale
         cov[:2, :2] += 0.5 * (relative_cov_xy + np.transpose(relative_cov_xy))
     return GlobalFix(
         t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
-        cov_xyyaw=cov * cov_scale, n_inliers=n, rmse_m=float(rmse_m),
+        cov_xyyaw=cov, n_inliers=n, rmse_m=float(rmse_m),
     )
 
 
