@@ -122,3 +122,19 @@ def test_dead_reckoning_map_holds_the_rovers_covariance_when_seen():
     grown = np.trace(rel, axis1=1, axis2=2) / np.trace(est.cov[:2, :2])
     assert grown.min() < 0.05
     assert grown.max() > 0.5
+
+
+def test_the_relative_term_is_not_multiplied_by_the_catalog_correlation():
+    """A second fix on the same catalog rocks has its catalog part doubled (correlation "rocks"),
+    but the rover's drift from its map is the same drift, added once."""
+    est, lmap, catalog, _ = _snapshot(n_new=0)
+    cfg = RelocalizerConfig(min_landmarks=6, min_new_observations=0)
+    plain = Relocalizer(catalog, dataclasses.replace(cfg, max_relative_sigmas=None))
+    rel = Relocalizer(catalog, dataclasses.replace(cfg, max_relative_sigmas=10.0))
+    later = PoseEstimate(est.t + 2.0, est.T_world_base, est.cov)
+    p1, p2 = plain.attempt(lmap, est).fix, plain.attempt(lmap, later).fix
+    r1, r2 = rel.attempt(lmap, est).fix, rel.attempt(lmap, later).fix
+    assert np.allclose(p2.cov_xyyaw, 2.0 * p1.cov_xyyaw)
+    added = r1.cov_xyyaw - p1.cov_xyyaw
+    assert np.trace(added[:2, :2]) > 0.1  # ~(0.3 m)^2 per axis of drift
+    assert np.allclose(r2.cov_xyyaw - p2.cov_xyyaw, added)

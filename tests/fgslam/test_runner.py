@@ -167,8 +167,9 @@ def _map_and_pose(stream):
 
 def test_successive_fixes_are_deweighted_for_their_shared_error(stream):
     lmap, est = _map_and_pose(stream)
+    # one map snapshot, attempted again; the correlation factor alone (no rover-relative term)
     cfg = RelocalizerConfig(correlation="window", correlation_window_s=60.0, min_landmarks=5,
-                             min_new_observations=0)  # one map snapshot, attempted again
+                             min_new_observations=0, max_relative_sigmas=None)
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     a1 = reloc.attempt(lmap, est)
     a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
@@ -182,7 +183,8 @@ def test_fixes_on_shared_catalog_rocks_are_deweighted_whenever_they_were_made(st
     """correlation "rocks": the covariance grows with the earlier fixes' use of the same catalog
     rocks, however long ago; a fix on other rocks keeps its own covariance."""
     lmap, est = _map_and_pose(stream)
-    reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5, min_new_observations=0),  # one snapshot
+    reloc = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5, min_new_observations=0,  # one snapshot
+                                                          max_relative_sigmas=None),  # the factor alone
                         matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     assert reloc.config.correlation == "rocks"
     a1 = reloc.attempt(lmap, est)
@@ -193,7 +195,7 @@ def test_fixes_on_shared_catalog_rocks_are_deweighted_whenever_they_were_made(st
     assert np.allclose(a3.fix.cov_xyyaw, 3.0 * a1.fix.cov_xyyaw)  # ... and twice, 500 s later
     # half of the rocks used three times before, half new: 1 + mean use
     rows = np.flatnonzero(reloc._rock_uses)  # the catalog rocks of those fixes
-    fresh = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5),
+    fresh = Relocalizer(stream.catalog, RelocalizerConfig(min_landmarks=5, max_relative_sigmas=None),
                         matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     fresh._rock_uses[rows[: rows.size // 2]] = 3
     assert fresh._correlation_scale(0.0, rows) == pytest.approx(1.0 + 3.0 * (rows.size // 2) / rows.size)
@@ -222,7 +224,8 @@ def test_fixes_are_deweighted_by_the_path_since_the_previous_one(stream):
     """correlation "distance": a fix on the same place again adds almost nothing (the scale at the
     floor), one 20 correlation lengths further on counts as independent."""
     lmap, est = _map_and_pose(stream)
-    cfg = RelocalizerConfig(correlation="distance", correlation_length_m=2.0, min_landmarks=5, min_new_observations=0)
+    cfg = RelocalizerConfig(correlation="distance", correlation_length_m=2.0, min_landmarks=5, min_new_observations=0,
+                            max_relative_sigmas=None)  # the correlation factor alone
     reloc = Relocalizer(stream.catalog, cfg, matcher=NearestNeighbourMatcher(stream.catalog.xy_m))
     a1 = reloc.attempt(lmap, est)
     a2 = reloc.attempt(lmap, PoseEstimate(est.t + 3.0, est.T_world_base, est.cov))
