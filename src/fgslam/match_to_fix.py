@@ -133,6 +133,15 @@ def distance_correlation_scale(distance_m: float, length_m: float) -> float:
     return (1.0 + rho) / (1.0 - rho)
 
 
+def rover_weights(xy: np.ndarray, rover_xy: np.ndarray, radius_m: float | None) -> np.ndarray:
+    """(K,) weights of map points ``xy`` (K, 2) by closeness to the rover, ``w = 1 / (1 + (d /
+    radius_m)^2)`` (``RelocalizerConfig.fit_radius_m``; None: all 1)."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if radius_m is None:
+        return np.ones(len(xy))
+    return 1.0 / (1.0 + np.sum((xy - np.asarray(rover_xy, float)[:2]) ** 2, axis=1) / radius_m**2)
+
+
 def rover_weighted_fit(
     local_xy: np.ndarray, world_xy: np.ndarray, rover_xy: np.ndarray, radius_m: float, floor_sigma_m: float
 ):
@@ -143,8 +152,7 @@ def rover_weighted_fit(
     from reloc.match_result import similarity_covariance
     from reloc.procrustes import umeyama_2d
 
-    d2 = np.sum((local_xy - np.asarray(rover_xy, float)) ** 2, axis=1)
-    w = 1.0 / (1.0 + d2 / radius_m**2)
+    w = rover_weights(local_xy, rover_xy, radius_m)
     sim = umeyama_2d(local_xy, world_xy, w, with_scale=False)
     res = sim.apply(local_xy) - world_xy
     rmse = float(np.sqrt(np.sum(w * np.sum(res * res, axis=1)) / np.sum(w)))

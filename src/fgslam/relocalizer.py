@@ -36,6 +36,7 @@ from fgslam.match_to_fix import (
     identify_single,
     rover_relative_cov_xy,
     rover_weighted_fit,
+    rover_weights,
     select_local_map,
 )
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
@@ -227,9 +228,7 @@ class Relocalizer:
         map_var = float(np.mean(0.5 * (cov_lm[:, 0, 0] + cov_lm[:, 1, 1]))) if len(cov_lm) else 0.0
         rel_fix = None
         if rel is not None:  # the inliers' drift from the rover, weighted as the fit weighs them
-            w = np.ones(len(L))
-            if cfg.fit_radius_m is not None:
-                w = 1.0 / (1.0 + np.sum((L - est.position_m[:2]) ** 2, axis=1) / cfg.fit_radius_m**2)
+            w = rover_weights(L, est.position_m, cfg.fit_radius_m)
             rel_fix = np.einsum("k,kij->ij", w / w.sum(), rel[idx[pairs[:, 0]]])
         try:
             fix = fix_from_similarity(
