@@ -243,7 +243,7 @@ class FilterState:
         P[:3, :3] = 0.5 * (P[:3, :3] + P[:3, :3].T)  # exactly symmetric (the two passes round differently)
         P[3:, :3] = P[:3, 3:].T
         P[self.slip_col, self.slip_col] += walk_var
-        if self.slope_col >= 0:
+        if self.has_slope_slip:
             P[self.slope_col, self.slope_col] += slope_walk_var
         if self.has_slip_gm:
             k = self.gm_col

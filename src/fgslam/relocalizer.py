@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fgslam.backends.reanchor import is_lost
 from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
     distance_correlation_scale,
@@ -193,7 +194,7 @@ class Relocalizer:
         t0 = time.perf_counter()
         prior = None
         sigma_pos = est.planar_sigma_m
-        if cfg.prior_sigmas is not None and sigma_pos <= cfg.lost_sigma_m:  # lost: the whole catalog
+        if cfg.prior_sigmas is not None and not is_lost(est, cfg.lost_sigma_m):  # lost: the whole catalog
             from reloc.matcher import MatchPrior
             from reloc.procrustes import Similarity2D
 
@@ -249,7 +250,7 @@ class Relocalizer:
         cfg = self.config
         if not cfg.single_landmark or idx.size == 0:
             return None
-        if est.planar_sigma_m > cfg.lost_sigma_m:
+        if is_lost(est, cfg.lost_sigma_m):
             return None  # lost: the gate would hold half the catalog
         t0 = time.perf_counter()
         if self._single_tree is None:
@@ -287,7 +288,7 @@ class Relocalizer:
         """(N, 2, 2) the rover's planar uncertainty relative to each landmark of ``lmap``
         (:func:`fgslam.match_to_fix.rover_relative_cov_xy`); None when the rule is off
         (``max_relative_sigmas`` None), the estimate is lost or the map empty."""
-        if self.config.max_relative_sigmas is None or len(lmap) == 0 or est.planar_sigma_m > self.config.lost_sigma_m:
+        if self.config.max_relative_sigmas is None or len(lmap) == 0 or is_lost(est, self.config.lost_sigma_m):
             return None
         return rover_relative_cov_xy(lmap.cov_world_m2[:, :2, :2], np.asarray(est.cov)[:2, :2])
 
