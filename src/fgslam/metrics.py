@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from fgslam.errors import FgslamError
-from fgslam.nees import NeesTest, nees_test
+from fgslam.nees import NeesTest, whiten, whitened_test
 from reloc.backend import Trajectory
 from reloc.geometry import wrap_angle, yaw_of
 
@@ -212,23 +212,21 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
     P = C[:, [0, 1, 5]][:, :, [0, 1, 5]]
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     e3 = np.concatenate([e_xy, e_yaw[:, None]], axis=1)
-    nees = np.einsum("ki,ki->k", e3, np.linalg.solve(P, e3[:, :, None])[:, :, 0])
-    nees_xy = np.einsum("ki,ki->k", e_xy, np.linalg.solve(P[:, :2, :2], e_xy[:, :, None])[:, :, 0])
+    w3, w_xy, w_yaw = whiten(e3, P), whiten(e_xy, P[:, :2, :2]), whiten(e_yaw, P[:, 2, 2])
+    nees, nees_xy, nees_yaw = (np.einsum("ki,ki->k", w, w) for w in (w3, w_xy, w_yaw))
     sig = np.sqrt(np.clip(np.diagonal(P, axis1=1, axis2=2), 0.0, None))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        nees_yaw = e_yaw**2 / P[:, 2, 2]
     in_axes = np.all(np.abs(e_xy) <= 3.0 * sig[:, :2], axis=1)
     n = int(inside.sum())
     nan = float("nan")
     stats = ConsistencyStats(
         inside_3sigma=float(np.mean(nees_xy <= CHI2_2DOF_3SIGMA)) if n else nan,
         inside_3sigma_axes=float(np.mean(in_axes)) if n else nan,
-        nees_mean=float(np.mean(nees)) if n else nan,
-        nees_xy_mean=float(np.mean(nees_xy)) if n else nan,
+        nees_mean=float(np.nanmean(nees)) if np.isfinite(nees).any() else nan,
+        nees_xy_mean=float(np.nanmean(nees_xy)) if np.isfinite(nees_xy).any() else nan,
         n=n,
-        position=nees_test(nees_xy, 2),
-        yaw=nees_test(nees_yaw, 1),
-        pose=nees_test(nees, 3),
+        position=whitened_test(w_xy),
+        yaw=whitened_test(w_yaw),
+        pose=whitened_test(w3),
     )
     series = {
         "t": est.t[inside],
@@ -241,6 +239,7 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
         "nees_xy": nees_xy,
         "nees_yaw": nees_yaw,
         "nees": nees,
+        "white_xy": w_xy,
     }
     return stats, series
 

@@ -44,6 +44,53 @@ def test_correlated_series_gets_a_small_effective_size(rng):
     assert t.interval[1] - t.interval[0] > 5 * np.diff(N.nees_interval(2, n))[0]
 
 
+def test_whitened_ar1_error_keeps_the_textbook_tau(rng):
+    """Estimated from the whitened errors about zero, the NEES's tau of an AR(1) error is
+    (1 + a^2) / (1 - a^2) (Isserlis: the NEES's autocorrelation is the error's squared)."""
+    from scipy.signal import lfilter
+
+    n, a = 200_000, 0.98
+    w = lfilter([1.0], [1.0, -a], rng.standard_normal((n, 2)) * np.sqrt(1 - a**2), axis=0)
+    tau = N.nees_autocorrelation_time(w)
+    assert tau == pytest.approx((1 + a**2) / (1 - a**2), rel=0.15)
+    t = N.whitened_test(w)
+    assert t.dof == 2 and t.n == n and t.n_eff == pytest.approx(n / tau)
+    assert t.mean == pytest.approx(np.mean(np.sum(w**2, axis=1))) and t.verdict is N.Verdict.CONSISTENT
+    white = N.whitened_test(rng.standard_normal((4000, 3)))
+    assert white.n_eff > 3500 and white.verdict is N.Verdict.CONSISTENT
+
+
+def test_a_persistent_offset_is_one_draw_not_many(rng):
+    """A rover stuck for 600 samples with one constant error inside its covariance: the NEES's
+    fluctuations about its own mean look nearly independent (a large n_eff and a narrow interval
+    that calls 3.3 optimistic); about zero the window holds one draw of the error."""
+    w = np.array([1.2, -1.35]) + 0.05 * rng.standard_normal((600, 2))  # NEES ~ 3.3, 2 dof
+    nees = np.sum(w**2, axis=1)
+    naive = N.nees_test(nees, 2)
+    assert naive.n_eff > 50 and naive.verdict is N.Verdict.OPTIMISTIC
+    t = N.whitened_test(w)
+    assert t.n_eff < 2.0 and t.verdict is N.Verdict.CONSISTENT
+    # a covariance 100x too small over the same window is still caught: one draw of NEES 330
+    assert N.whitened_test(10.0 * w).verdict is N.Verdict.OPTIMISTIC
+
+
+def test_whiten_is_the_cholesky_whitening_and_flags_bad_covariances(rng):
+    A = rng.standard_normal((50, 3, 3))
+    P = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    e = rng.standard_normal((50, 3))
+    w = N.whiten(e, P)
+    np.testing.assert_allclose(np.sum(w**2, axis=1), np.einsum("ki,ki->k", e, np.linalg.solve(P, e[:, :, None])[:, :, 0]))
+    np.testing.assert_allclose(np.einsum("kij,kj->ki", np.linalg.cholesky(P), w), e, atol=1e-12)
+    bad = P.copy()
+    bad[3] = -np.eye(3)
+    bad[7, 0, 0] = np.nan
+    wb = N.whiten(e, bad)
+    assert np.isnan(wb[[3, 7]]).all() and np.isfinite(np.delete(wb, [3, 7], axis=0)).all()
+    np.testing.assert_allclose(N.whiten(e[:, 0], P[:, 0, 0])[:, 0], e[:, 0] / np.sqrt(P[:, 0, 0]))
+    t = N.whitened_test(wb)
+    assert t.n == 48
+
+
 def test_pooled_runs_are_tested_with_the_sum_of_effective_sizes(rng):
     runs = [N.nees_test(rng.chisquare(1, 500), 1, correlated=False) for _ in range(4)]
     p = N.pooled_test(runs)

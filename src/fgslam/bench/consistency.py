@@ -9,7 +9,7 @@ only unless ``--craters``), over the first ``--duration-s`` seconds, and every `
 seconds of stream the table gives the distance driven, the RMS planar error and the mean planar
 sigma, the height error and sigma and the yaw error and sigma at the bin's end, and the mean
 position and yaw NEES of the bin.
-The whole stretch's NEES gets the two-sided verdict of :func:`fgslam.nees.nees_test`.
+The whole stretch's NEES gets the two-sided verdict of :func:`fgslam.nees.whitened_test`.
 """
 
 from __future__ import annotations

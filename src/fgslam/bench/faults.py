@@ -33,7 +33,7 @@ import numpy as np
 
 from fgslam import metrics as M
 from fgslam.compare import CompareConfig, run_key, run_label
-from fgslam.nees import nees_test
+from fgslam.nees import whitened_test
 from reloc.config import NonNegative, Positive, checked
 from reloc.errors import ConfigError
 
@@ -77,11 +77,12 @@ def scenarios(cfg: FaultBenchConfig) -> dict:
 
 
 def _planar(res, gt):
-    """(t, planar error (K,), planar sigma (K,), nees_xy (K,)) of a pass's online estimate."""
+    """(t, planar error (K,), planar sigma (K,), whitened planar error (K, 2)) of a pass's online
+    estimate."""
     _, series = M.consistency(res.online, gt)
     err = np.linalg.norm(series["err_xy"], axis=1)
     sigma = np.linalg.norm(series["sigma_xy"], axis=1)
-    return series["t"], err, sigma, series["nees_xy"]
+    return series["t"], err, sigma, series["white_xy"]
 
 
 def recovery_s(t: np.ndarray, err: np.ndarray, t_end_fault: float, level_m: float) -> float | None:
@@ -100,7 +101,7 @@ def fault_metrics(res, gt, window: tuple[float, float] | None, free_ate_m: float
                   reference: bool = False) -> dict:
     """The fault figures of one pass (see module doc); ``reference``: the fault-free run, whose
     NEES test over ``window`` (the scenarios' nominal window) is the yardstick of the others."""
-    t, err, sigma, nees_xy = _planar(res, gt)
+    t, err, sigma, white_xy = _planar(res, gt)
     end = t >= t[-1] - end_window_s
     out = {"ate_m": M.ate(res.final, gt).rmse, "ate_online_m": float(np.sqrt(np.mean(err**2))),
            "end_rmse_m": float(np.sqrt(np.mean(err[end] ** 2))), "max_err_m": float(err.max())}
@@ -111,10 +112,10 @@ def fault_metrics(res, gt, window: tuple[float, float] | None, free_ate_m: float
         return out
     a, b = window
     if reference:  # the fault-free run over the nominal window: how consistent the variant is anyway
-        out["blind"] = nees_test(nees_xy[(t >= a) & (t < b)], 2).to_dict()
+        out["blind"] = whitened_test(white_xy[(t >= a) & (t < b)]).to_dict()
         return out
     blind = (t >= a) & (t < b)
-    test = nees_test(nees_xy[blind], 2)
+    test = whitened_test(white_xy[blind])
     out["blind"] = test.to_dict()
     ia, ib = np.flatnonzero(blind)[[0, -1]] if blind.any() else (0, 0)
     out["sigma_growth"] = float(sigma[ib] / max(sigma[ia], 1e-12))
