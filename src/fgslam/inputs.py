@@ -65,6 +65,21 @@ def start_pose_from_truth(gt: GroundTruthPose) -> PoseEstimate:
     return PoseEstimate(gt.t, T, known_start_cov())
 
 
+def start_drawn_from_prior(start: PoseEstimate, rng: np.random.Generator) -> PoseEstimate:
+    """``start`` (the true pose) moved by one draw from its own covariance, in the convention of
+    :mod:`reloc.backend` (``R_true = Exp(dtheta) R_est``, ``p_true = p_est + dp``): the start of a
+    Monte Carlo consistency test. A run started at the exact truth while claiming ``start.cov``
+    carries in its covariance an error it never has (unobservable without fixes, so it never
+    leaves), and its NEES reads pessimistic for that alone."""
+    from reloc.geometry import exp_so3
+
+    d = rng.multivariate_normal(np.zeros(6), start.cov)
+    T = start.T_world_base.copy()
+    T[:3, :3] = exp_so3(-d[3:]) @ T[:3, :3]
+    T[:3, 3] = T[:3, 3] - d[:3]
+    return PoseEstimate(start.t, T, start.cov)
+
+
 @dataclass(frozen=True)
 class StartSpec:
     """A start pose given by the user (``--start``): x, y, yaw and optionally z (m, rad), and/or

@@ -3,8 +3,10 @@ my2020, both back-ends."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
+from fgslam import nees as N
 from fgslam.bench.faults import VARIANTS, FaultBenchConfig, goals_met, markdown, run_fault_bench
 from fgslam.compare import CompareConfig
 
@@ -91,7 +93,41 @@ def test_cli_refuses_bad_options_before_any_work(tmp_path, capsys):
     assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
     assert "the scenarios set the faults block" in capsys.readouterr().err
     assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--distance-m", "nan"]) == 2
+    assert main(["bench", "faults", "--out", str(tmp_path / "o"), "--seed", "2-1"]) == 2
+    assert "range '2-1' ends before it starts" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_seeds_are_pooled_as_a_campaign_pools_them():
+    """Two seeds' blind windows, each a couple of effective samples (a wide interval of its own):
+    pooled, the mean over all samples is tested against the interval of the summed effective sizes
+    (narrower: a pessimism each seed alone hides shows), and the goals are counted per seed."""
+    from fgslam.bench.faults import markdown_pooled, pooled
+    from fgslam.nees import NeesTest, nees_interval
+
+    def seed_result(seed, mean, n, n_eff, end_ratio):
+        blind = (NeesTest(2, mean, n, n_eff, nees_interval(2, n_eff), N.Verdict.CONSISTENT).to_dict() if n
+                 else N.whitened_test(np.zeros((0, 2))).to_dict())
+        cell = {"ate_m": 0.01 * (seed + 1), "end_ratio": end_ratio, "blind": blind}
+        return {"bench": {"world": "my2020", "distance_m": 24.0}, "variants": ["ekf"],
+                "scenarios": {"none": {"runs": {"ekf": {"ate_m": 0.01, "end_ratio": 1.0, "blind": blind}}},
+                              "camera_blackout": {"runs": {"ekf": cell}}}}
+
+    by_seed = {0: seed_result(0, 0.5, 600, 2.0, 1.5), 1: seed_result(1, 0.7, 600, 3.0, 5.0),
+               2: {**seed_result(2, 0.0, 0, 0.0, 1.0)}}
+    by_seed[2]["scenarios"]["camera_blackout"]["runs"]["ekf"] = {"error": "RuntimeError: boom"}
+    pool = pooled(by_seed)
+    c = pool["camera_blackout"]["ekf"]
+    assert c["seeds"] == 3 and c["goals"] == {"finished": 2, "consistent_blind": 2, "end_within_2x": 1}
+    assert c["ate_m"] == {"0": 0.01, "1": 0.02}
+    b = c["blind"]
+    assert b["n"] == 1200 and b["mean"] == pytest.approx(0.6) and b["n_eff"] == pytest.approx(5.0)
+    # each seed alone is inside its wide interval; together they are found pessimistic
+    assert all(nees_interval(2, ne)[0] < m for m, ne in ((0.5, 2.0), (0.7, 3.0)))
+    assert b["interval"] == pytest.approx(list(nees_interval(2, 5.0))) and b["verdict"] == "pessimistic"
+    assert "goals" in pool["none"]["ekf"] and pool["none"]["ekf"]["goals"] == {}
+    table = markdown_pooled(by_seed, pool)
+    assert "over seeds 0, 1, 2" in table and "end <= 2x 1/3" in table
 
 
 def test_the_columns_follow_the_compare_configs_back_ends(blackout):
