@@ -9,6 +9,7 @@ odometry-only curve.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
@@ -74,6 +75,10 @@ class CompareConfig:
     topics: dict = field(default_factory=dict)  # input role -> bag topic (reloc.bag_spec.topic_names)
     images: ImageInputConfig = field(default_factory=ImageInputConfig)  # a bag's stereo images -> rocks
     long_traverse: LongTraverseConfig = field(default_factory=LongTraverseConfig)  # bounded back-ends
+    # every pass starts from one draw of the start's claimed prior, seeded with the simulator's seed
+    # (fgslam.inputs.start_drawn_from_prior): a Monte Carlo consistency test. False: the start as
+    # read (a simulator's is the exact truth, claiming 1 cm and 0.002 rad it does not have)
+    draw_start: bool = False
 
     def __post_init__(self) -> None:
         from fgslam.backends.registry import BACKEND_NAMES, backend_config
@@ -221,6 +226,17 @@ class WorldComparison:
     wall_s: float
 
 
+def _with_drawn_start(inputs: RunInputs) -> RunInputs:
+    """``inputs`` with its start drawn from the start's prior (``CompareConfig.draw_start``)."""
+    from fgslam.inputs import start_drawn_from_prior
+
+    seed = inputs.source.get("seed")
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise CompareError(f"{inputs.name}: draw_start needs the simulator's seed (a `fgslam sim` directory's "
+                           f"world.yaml, a campaign's task); these inputs have {seed!r}")
+    return dataclasses.replace(inputs, initial=start_drawn_from_prior(inputs.initial, seed))
+
+
 def compare_world(
     inputs: RunInputs,
     config: CompareConfig | None = None,
@@ -236,6 +252,8 @@ def compare_world(
     if cfg.reference_backend not in cfg.backends:
         raise CompareError(f"reference_backend {cfg.reference_backend!r} is not among {cfg.backends}")
     wall0 = time.perf_counter()
+    if cfg.draw_start:
+        inputs = _with_drawn_start(inputs)
     gt, span = evaluation_truth(inputs)
 
     relocs = relocalizers if relocalizers is not None else relocalizer_set(inputs, cfg)

@@ -65,15 +65,19 @@ def start_pose_from_truth(gt: GroundTruthPose) -> PoseEstimate:
     return PoseEstimate(gt.t, T, known_start_cov())
 
 
-def start_drawn_from_prior(start: PoseEstimate, rng: np.random.Generator) -> PoseEstimate:
+START_STREAM = 0x57A27  # the start draw's random stream beside the simulator's (same seed)
+
+
+def start_drawn_from_prior(start: PoseEstimate, seed: int) -> PoseEstimate:
     """``start`` (the true pose) moved by one draw from its own covariance, in the convention of
-    :mod:`reloc.backend` (``R_true = Exp(dtheta) R_est``, ``p_true = p_est + dp``): the start of a
-    Monte Carlo consistency test. A run started at the exact truth while claiming ``start.cov``
-    carries in its covariance an error it never has (unobservable without fixes, so it never
-    leaves), and its NEES reads pessimistic for that alone."""
+    :mod:`reloc.backend` (``R_true = Exp(dtheta) R_est``, ``p_true = p_est + dp``), seeded with the
+    simulator's ``seed`` on a stream of its own: the start of a Monte Carlo consistency test. A run
+    started at the exact truth while claiming ``start.cov`` carries in its covariance an error it
+    never has (unobservable without fixes, so it never leaves), and its NEES reads pessimistic for
+    that alone."""
     from reloc.geometry import exp_so3
 
-    d = rng.multivariate_normal(np.zeros(6), start.cov)
+    d = np.random.default_rng([int(seed), START_STREAM]).multivariate_normal(np.zeros(6), start.cov)
     T = start.T_world_base.copy()
     T[:3, :3] = exp_so3(-d[3:]) @ T[:3, :3]
     T[:3, 3] = T[:3, 3] - d[:3]

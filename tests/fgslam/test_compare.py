@@ -149,3 +149,24 @@ def test_cli_sim_run_compare_end_to_end(tmp_path):
     assert config_to_dict(load_sim_config(None, None, None, sim_dir / "world.yaml")) == world["config"]
     for d in (sim_dir, out, cmp_out):
         assert json.loads((d / "manifest.json").read_text())["status"] == "complete"
+
+
+def test_draw_start_moves_every_pass_start_by_the_seeded_draw():
+    """``draw_start``: every pass starts from the draw of the start's prior seeded with the
+    simulator's seed (the dead-reckoning pass shows it: its first pose is the start); inputs
+    without a seed are refused by name."""
+    from fgslam.inputs import start_drawn_from_prior
+
+    inputs = make_stream(seed=7, duration_s=10.0)
+    cfg = CompareConfig(backends=("dr",), reference_backend="dr", workers=1, draw_start=True)
+    reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
+    del inputs.source["seed"]
+    with pytest.raises(CompareError, match="draw_start needs the simulator's seed"):
+        compare_world(inputs, cfg, relocalizers=[reloc])
+    inputs.source["seed"] = 4
+    wc = compare_world(inputs, cfg, relocalizers=[reloc])
+    drawn = start_drawn_from_prior(inputs.initial, 4).T_world_base
+    first = wc.runs["dr"].final.T_world_base[0]
+    assert np.linalg.norm(drawn[:3, 3] - inputs.initial.T_world_base[:3, 3]) > 1e-4
+    np.testing.assert_allclose(first[:3, 3], drawn[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(first[:3, :3], drawn[:3, :3], atol=1e-9)

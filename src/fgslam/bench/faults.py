@@ -6,7 +6,8 @@ from its bag (so the recorder's jitter meets the real reader), then compared as 
 compare`` does: EKF and iSAM2, each without and with relocalization (the fixes of the reference
 pass, replayed to the other). The wrong-fix scenario wraps the reference pass's relocalizer
 (:mod:`fgslam.fault_fixes`). Every pass starts from one draw of the start's claimed prior
-(``draw_start``, seeded), as a Monte Carlo consistency test must.
+(``draw_start``, the comparison's, seeded with the simulator's seed), as a Monte Carlo
+consistency test must.
 
 Per scenario and variant (:func:`fault_metrics`, on the online estimate, the one a rover acts on):
 
@@ -47,7 +48,6 @@ log = logging.getLogger(__name__)
 Tick = Callable[[str, int], Callable[[], None]]
 FAULT_FREE = "none"
 END_RATIO_GOAL = 2.0
-START_STREAM = 0x57A27  # the start draw's random stream beside the simulator's (same seed)
 
 
 @checked(ConfigError)
@@ -156,13 +156,13 @@ def run_fault_bench(cfg: FaultBenchConfig, compare_cfg: CompareConfig | None = N
     returns the results (plain data: per scenario, per variant the :func:`fault_metrics`)."""
     from fgslam.compare import compare_world, relocalizer_set
     from fgslam.fault_fixes import with_wrong_fixes
-    from fgslam.inputs import load_sim_dir, start_drawn_from_prior
+    from fgslam.inputs import load_sim_dir
     from fgslam.io.sim_dir import write_sim_dir
     from reloc.config import config_from_dict, config_to_dict
     from sim.config import SimConfig, TraverseConfig
     from sim.simulate import simulate
 
-    compare_cfg = compare_cfg or CompareConfig()
+    compare_cfg = dataclasses.replace(compare_cfg or CompareConfig(), draw_start=cfg.draw_start)
     variants = variants_of(compare_cfg)
     tick = tick or (lambda name, total: (lambda: None))
     base = config_from_dict(SimConfig, sim_overrides or {})
@@ -179,8 +179,6 @@ def run_fault_bench(cfg: FaultBenchConfig, compare_cfg: CompareConfig | None = N
             run = simulate(sim_cfg)
             write_sim_dir(run, Path(tmp) / name)
             inputs = load_sim_dir(Path(tmp) / name)
-            if cfg.draw_start:
-                inputs.initial = start_drawn_from_prior(inputs.initial, np.random.default_rng([cfg.seed, START_STREAM]))
             relocs = relocalizer_set(inputs, compare_cfg)
             t_end = float(run.ground_truth.t[-1])
             window = _scenario_window(name, run.stats, t_end, float(run.ground_truth.t[0]), cfg)
