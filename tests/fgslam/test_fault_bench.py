@@ -80,6 +80,7 @@ def test_table_has_a_row_per_scenario_and_the_fault_free_reference(blackout):
     rows = [line for line in table.splitlines() if line.startswith("| ")]
     assert [r.split(" | ")[0] for r in rows[1:]] == ["| none", "| camera_blackout"]
     assert set(blackout["free_ate_online_m"]) == set(VARIANTS)
+    assert blackout["compare_config"]["draw_start"] is True  # the comparison as run (saved in config.yaml)
     assert "finished: 4/4" in rows[-1]
 
 

@@ -82,7 +82,7 @@ def bench_faults_cmd(
         (od.staging / "results.json").write_text(json.dumps(_jsonable(res), indent=2))
         (od.staging / "table.md").write_text(table)
         used = {"bench": config_to_dict(cfg) | {"seed": list(seeds) if len(seeds) > 1 else seeds[0]},
-                "sim_overrides": overrides, "compare_config": config_to_dict(cmp_cfg),
+                "sim_overrides": overrides, "compare_config": by_seed[seeds[0]]["compare_config"],  # as run (draw_start set)
                 "scenarios": {k: config_to_dict(v) for k, v in scenarios(cfg).items()}}
         (od.staging / "config.yaml").write_text(yaml.safe_dump(_jsonable(used), sort_keys=False))
         files = od.commit()
