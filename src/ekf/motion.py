@@ -8,7 +8,8 @@ Over a step of ``dt`` with forward speed ``v`` and IMU increment ``dR = R_ref_ba
 Error state ``[dp_world, dtheta_world]`` with ``R_true = Exp(dtheta) R``: the Jacobian is
 ``F = [[I, -[R_mid d]x], [0, I]]`` (``d = [v dt, 0, 0]``). Process noise enters as body-frame
 translation noise rotated by ``R_mid`` and body-frame rotation noise rotated by ``R1``; its
-variances follow :class:`ekf.config.MotionNoiseConfig`.
+variances follow :class:`ekf.config.MotionNoiseConfig`. A step's ``extra_yaw_var_rad2`` (the gyro
+monitor's, :mod:`reloc.gyro`) adds to the heading's variance about world z.
 """
 
 from __future__ import annotations
@@ -85,15 +86,17 @@ def propagate(
     Q = np.zeros((6, 6))
     Q[:3, :3] = (R_mid * var_t) @ R_mid.T
     Q[3:, 3:] = (R1 * var_r) @ R1.T
+    Q[5, 5] += step.extra_yaw_var_rad2
     return p1, R1, F, Q
 
 
 def split_step(step: OdometryStep, t: float) -> tuple[OdometryStep, OdometryStep]:
     """Split a step at ``t0 < t < t1``: same speed, the IMU orientation interpolated on SO(3), the
-    extra forward variance shared in proportion to time."""
+    extra forward and heading variances shared in proportion to time."""
     a = (t - step.t0) / step.dt
     dR = step.R_ref_base0.T @ step.R_ref_base1
     R_t = step.R_ref_base0 @ exp_so3(a * log_so3(dR))
-    extra = step.extra_forward_var_m2
-    return (dataclasses.replace(step, t1=t, R_ref_base1=R_t, extra_forward_var_m2=a * extra),
-            dataclasses.replace(step, t0=t, R_ref_base0=R_t, extra_forward_var_m2=(1.0 - a) * extra))
+    f, y = step.extra_forward_var_m2, step.extra_yaw_var_rad2
+    return (dataclasses.replace(step, t1=t, R_ref_base1=R_t, extra_forward_var_m2=a * f, extra_yaw_var_rad2=a * y),
+            dataclasses.replace(step, t0=t, R_ref_base0=R_t, extra_forward_var_m2=(1.0 - a) * f,
+                                extra_yaw_var_rad2=(1.0 - a) * y))

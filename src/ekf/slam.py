@@ -243,7 +243,8 @@ class EkfSlam(Backend):
     # ------------------------------------------------------------------ validation
     def _check_step(self, step: OdometryStep) -> None:
         try:
-            vals = np.array([step.t0, step.t1, step.v_mps, step.extra_forward_var_m2], dtype=float)
+            vals = np.array([step.t0, step.t1, step.v_mps, step.extra_forward_var_m2, step.extra_yaw_var_rad2],
+                            dtype=float)
             R0 = np.asarray(step.R_ref_base0, dtype=float)
             R1 = np.asarray(step.R_ref_base1, dtype=float)
         except (TypeError, ValueError, AttributeError) as exc:
@@ -255,9 +256,9 @@ class EkfSlam(Backend):
         for name, R in (("R_ref_base0", R0), ("R_ref_base1", R1)):
             if np.abs(R.T @ R - _I3).max() > 1e-6:
                 raise EkfInputError(f"OdometryStep.{name} at t1={step.t1} is not a rotation matrix")
-        if step.extra_forward_var_m2 < 0:
-            raise EkfInputError(f"OdometryStep.extra_forward_var_m2 at t1={step.t1} is negative "
-                                f"({step.extra_forward_var_m2})")
+        for name in ("extra_forward_var_m2", "extra_yaw_var_rad2"):
+            if getattr(step, name) < 0:
+                raise EkfInputError(f"OdometryStep.{name} at t1={step.t1} is negative ({getattr(step, name)})")
         if step.t1 <= step.t0:
             raise EkfInputError(f"OdometryStep t1 ({step.t1}) must be after t0 ({step.t0})")
         if step.t0 < self._s.t - _T_EPS or step.t1 <= self._s.t_input:

@@ -160,6 +160,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         },
         "memory": res.extra.get("memory", []),
         "slip": res.extra.get("slip", {}),  # the wheel-slip monitor's checks and spells (reloc.slip)
+        "gyro": res.extra.get("gyro", {}),  # the gyro monitor's checks and bias spells (reloc.gyro)
         "n_landmarks": res.n_landmarks,
         "landmarks_by_kind": {k: len(m) for k, m in res.landmarks.items()},
     }

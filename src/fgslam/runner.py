@@ -2,8 +2,9 @@
 
 The loop is the algorithm: for each measurement, *deliver the fixes that are due*, then
 *predict* (motion inputs, assembled into odometry steps by :class:`reloc.odometry.OdometryAssembler`
-and corrected for wheel slip by :class:`reloc.slip.SlipMonitor`) or *observe* (a landmark frame of
-any registered kind, :mod:`reloc.kinds`, which the slip monitor sees too); ground-truth poses
+and corrected for wheel slip by :class:`reloc.slip.SlipMonitor` and for a gyro bias by
+:class:`reloc.gyro.GyroMonitor`) or *observe* (a landmark frame of any registered kind,
+:mod:`reloc.kinds`, which both monitors see too); ground-truth poses
 are only collected for evaluation. Beside it: where fixes come from (one
 :class:`fgslam.fix_sources.FixSource`: online relocalizers, a replayed list, a feed), the
 recording of the online estimate at ``record_rate_hz`` (:class:`RunRecorder`), and the wall time
@@ -38,6 +39,7 @@ from reloc.kinds import UnknownKindError, kind_of
 from reloc.measurements import CmdVel, GlobalFix, GroundTruthPose, ImuSample, WheelOdometry
 from reloc.odometry import OdometryAssembler
 from reloc.rows import RowBuffer
+from reloc.gyro import GyroConfig, GyroMonitor
 from reloc.slip import SlipConfig, SlipMonitor
 
 log = logging.getLogger(__name__)
@@ -71,6 +73,9 @@ class RunnerConfig:
     # wheel slip seen by the landmarks corrects the odometry of both back-ends (reloc.slip): the
     # fault table's 60 s stuck rover (docs/sim.md)
     slip: SlipConfig = field(default_factory=SlipConfig)
+    # a gyro bias step seen by the landmarks corrects the IMU's heading for both back-ends
+    # (reloc.gyro): the fault table's IMU bias step (docs/sim.md)
+    gyro: GyroConfig = field(default_factory=GyroConfig)
 
 
 @dataclass
@@ -248,6 +253,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
     odometry = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
                                  max_speed_age_s=cfg.max_speed_age_s)
     slip = SlipMonitor(cfg.slip)
+    gyro = GyroMonitor(cfg.gyro)
     rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m, observer, keep_truth)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
@@ -262,7 +268,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         if isinstance(m, MOTION_INPUTS):
             step = odometry.push(m)
             if step is not None:  # predict
-                be.predict(slip.correct(step))
+                be.predict(gyro.correct(slip.correct(step)))
                 rec.predicted(t, be)
                 fixes.after_predict(t, be)
                 rec.progress(t)
@@ -272,6 +278,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
             kind = _landmark_kind(m, t)
             kinds.setdefault(kind)
             slip.observe(kind, m)
+            gyro.observe(kind, m)
             be.observe(m)
     if rec.t_first is None:
         raise RunnerError("the measurement stream is empty")
@@ -289,5 +296,6 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         landmarks={k: be.landmark_map(k) for k in kinds}, stats=be.stats(),
         wall_s=wall, backend_s=be.busy_s, match_s=fixes.match_s, t_start=float(rec.t_first),
         t_end=float(rec.t_last), cpu_s=cpu, backend_cpu_s=be.busy_cpu_s,
-        extra={"frame_latency": be.frame_latency.to_dict(), "memory": rec.memory, "slip": slip.stats()},
+        extra={"frame_latency": be.frame_latency.to_dict(), "memory": rec.memory, "slip": slip.stats(),
+               "gyro": gyro.stats()},
     )

@@ -37,7 +37,9 @@ class OdometryStep:
     ``R_ref_base0`` / ``R_ref_base1`` (3, 3): IMU orientations at t0 / t1 (gravity-aligned reference,
     yaw drifting); ``gyro_radps`` (3,): mean body rate; ``dR_base`` = R0.T @ R1 the body-frame
     rotation increment; ``extra_forward_var_m2``: forward translation variance (m^2) the back-ends
-    add to their own noise over the step (the slip monitor's uncertainty, :mod:`reloc.slip`).
+    add to their own noise over the step (the slip monitor's uncertainty, :mod:`reloc.slip`);
+    ``extra_yaw_var_rad2``: heading variance (rad^2) about the gravity axis they add likewise (the
+    gyro monitor's, :mod:`reloc.gyro`).
     """
 
     t0: float
@@ -48,6 +50,7 @@ class OdometryStep:
     R_ref_base1: np.ndarray
     gyro_radps: np.ndarray
     extra_forward_var_m2: float = 0.0
+    extra_yaw_var_rad2: float = 0.0
 
     @property
     def dt(self) -> float:

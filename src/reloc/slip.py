@@ -37,7 +37,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -81,14 +81,25 @@ class SlipConfig:
     hold_s: Positive = 5.0  # a detected slip is applied this long after the last check that measured it
 
 
+class Registration(Protocol):
+    """The settings :func:`visual_translation` reads (:class:`SlipConfig`, :class:`reloc.gyro.GyroConfig`)."""
+
+    min_inliers: int
+    inlier_chi2: float
+    ambiguity_ratio: float
+    search_margin_m: float
+
+
 @dataclass(frozen=True)
 class VisualTranslation:
     """Translation ``d_m`` (3,) of base_link between two frames, in the first frame's base_link,
-    its covariance ``cov_m2`` (3, 3) and the number of landmark pairs behind it."""
+    its covariance ``cov_m2`` (3, 3), the number of landmark pairs behind it and those pairs
+    (``pairs`` (k, 2): reference and current point indices)."""
 
     d_m: np.ndarray
     cov_m2: np.ndarray
     n_inliers: int
+    pairs: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2), dtype=int))
 
 
 def visual_translation(
@@ -98,7 +109,7 @@ def visual_translation(
     cov_cur: np.ndarray,
     R_ref_cur: np.ndarray,
     d_wheel: np.ndarray,
-    cfg: SlipConfig,
+    cfg: Registration,
 ) -> VisualTranslation | None:
     """The rover's translation between a reference frame (points ``p_ref`` (N, 3), covariances
     ``cov_ref`` (N, 3, 3), base_link then) and the current one (``p_cur`` (M, 3), ``cov_cur``),
@@ -147,7 +158,7 @@ def visual_translation(
     far = np.linalg.norm(D - d, axis=1) > 2.0 * r
     if far.any() and np.max(np.asarray(counts)[far]) >= cfg.ambiguity_ratio * inl.size:
         return None
-    return VisualTranslation(d, 0.5 * (cov + cov.T), int(inl.size))
+    return VisualTranslation(d, 0.5 * (cov + cov.T), int(inl.size), np.column_stack([ii[inl], jj[inl]]))
 
 
 def _one_to_one(cand: np.ndarray, cost: np.ndarray, ii: np.ndarray, jj: np.ndarray) -> np.ndarray:

@@ -33,6 +33,9 @@ def step_motion(step: OdometryStep, cfg: OdometryNoiseConfig) -> tuple[np.ndarra
     s_l2 = cfg.sigma_lateral_m_per_sqrtm**2 * ad + cfg.floor_sigma_m**2
     s_r2 = cfg.sigma_rot_radpsqrts**2 * max(step.dt, 0.0) + cfg.floor_sigma_rad**2
     Q = np.diag([s_r2, s_r2, s_r2, s_f2, s_l2, s_l2])
+    if step.extra_yaw_var_rad2:  # the gyro monitor's heading variance, about the gravity axis (reloc.gyro)
+        up = np.asarray(step.R_ref_base1)[2, :]  # R^T e_z: world z in base_link at the step's end
+        Q[:3, :3] += step.extra_yaw_var_rad2 * np.outer(up, up)
     return dT, Q
 
 
