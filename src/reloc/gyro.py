@@ -20,16 +20,19 @@ from a weighted least-squares fit over the inlier pairs (:func:`visual_yaw`). Si
 reported rotation is ``Exp(b T u) R_true``, the bias over the interval ``T`` is ``b = -delta / T``,
 with sigma ``sigma_delta / T`` (the fit's covariance times ``cov_scale``).
 
-A check *detects a bias* when ``|b|`` exceeds both ``min_bias_radps`` and ``gate_sigma`` sigmas;
-after ``confirm_checks`` consecutive such checks of one sign, every odometry step's IMU rotation
-is turned back by ``b dt`` about the gravity axis (the orientations ``R_ref_base0``,
-``R_ref_base1`` of every later step are premultiplied by the accumulated correction, so roll and
-pitch stay the IMU's), and the step carries the estimate's uncertainty as heading variance about
-the gravity axis, ``(sigma_b^2 + change_sigma^2) dt T`` (correlated over one check interval), plus
-once, at detection, the heading that went in uncorrected while the checks confirmed it
-(``(b T_streak)^2``). The correction follows every later check that still sees a bias, ends at the
-first determined check that sees none (the checks compare the raw IMU, so they measure the bias
-itself, not what is left of it), and after ``hold_s`` without a determined check.
+The decision pools the last ``confirm_checks`` determined checks of the kind (consecutive, no
+two more than ``max_check_gap_s`` apart): their inverse-variance mean ``b_bar`` with sigma
+``sigma_bar`` (a sparse field gives single checks of ~2-3 sigma at 0.002 rad/s; pooled, the
+evidence adds up). The gyro is *biased* when those checks all have one sign and ``|b_bar|``
+exceeds both ``min_bias_radps`` and ``gate_sigma`` sigmas; then every odometry step's IMU
+rotation is turned back by ``b_bar dt`` about the gravity axis (the orientations
+``R_ref_base0``, ``R_ref_base1`` of every later step are premultiplied by the accumulated
+correction, so roll and pitch stay the IMU's), and the step carries the estimate's uncertainty as
+heading variance about the gravity axis, ``(sigma_bar^2 + change_sigma^2) dt T`` (correlated over
+one check interval ``T``), plus once, at detection, the heading that went in uncorrected while
+the checks confirmed it (``(b_bar T_pooled)^2``). The correction follows every later check, ends
+at the first one whose pool no longer says *biased* (the checks compare the raw IMU, so they
+measure the bias itself, not what is left of it), and after ``hold_s`` without a determined check.
 
 The front-end correction serves both back-ends alike (the runner applies it after the slip
 monitor's, before ``predict``). Core maths only: no I/O.
@@ -72,7 +75,7 @@ class GyroConfig:
     max_delta_rad: Positive = 0.06
     delta_step_rad: Positive = 0.01
     # the registration (reloc.slip.visual_translation)
-    min_inliers: PositiveInt = 6
+    min_inliers: PositiveInt = 5
     inlier_chi2: Positive = 11.34
     ambiguity_ratio: Fraction = 0.6
     search_margin_m: NonNegative = 0.5
@@ -84,7 +87,8 @@ class GyroConfig:
     # below this the back-ends' rotation noise covers the drift (a healthy gyro: ~1e-5 rad/s)
     min_bias_radps: NonNegative = 3.0e-4
     gate_sigma: Positive = 4.0
-    confirm_checks: PositiveInt = 2  # consecutive biased checks of one sign before correcting
+    confirm_checks: PositiveInt = 2  # determined checks pooled for a decision (all of one sign)
+    max_check_gap_s: Positive = 40.0  # checks further apart than this are not pooled
     change_sigma_radps: NonNegative = 1.0e-4  # how much the bias may change between two checks
     hold_s: Positive = 60.0  # a correction is dropped this long after the last check that measured it
 
@@ -185,7 +189,7 @@ class GyroMonitor:
         self.n_undetermined = 0
         self.n_detections = 0
         self.corrected_s = 0.0
-        self._streak, self._streak_sign, self._streak_s = 0, 1.0, 0.0
+        self._pool: dict[str, list[tuple[float, float, float, float]]] = {}  # kind -> [(t, T, b, sigma)]
 
     @property
     def active(self) -> bool:
@@ -267,27 +271,33 @@ class GyroMonitor:
         T = t - t_ref
         b = -vy.delta_rad / T
         sigma = vy.sigma_rad * math.sqrt(cfg.cov_scale) / T
-        biased = abs(b) > max(cfg.min_bias_radps, cfg.gate_sigma * sigma)
+        pool = self._pool.setdefault(kind, [])
+        if pool and t_ref - pool[-1][0] > cfg.max_check_gap_s:
+            pool.clear()
+        pool.append((t, T, b, sigma))
+        del pool[:-cfg.confirm_checks]
+        w = np.array([1.0 / p[3] ** 2 for p in pool])
+        bs = np.array([p[2] for p in pool])
+        b_bar = float(w @ bs / w.sum())
+        s_bar = float(1.0 / math.sqrt(w.sum()))
+        biased = (len(pool) == cfg.confirm_checks and bool(np.all(np.sign(bs) == np.sign(b_bar)))
+                  and abs(b_bar) > max(cfg.min_bias_radps, cfg.gate_sigma * s_bar))
         check = GyroCheck(t, t_ref, kind, vy.delta_rad, vy.sigma_rad * math.sqrt(cfg.cov_scale), b, sigma,
                           vy.n_inliers, biased)
         self.checks.append(check)
-        same = biased and (self._streak == 0 or b * self._streak_sign > 0)
-        self._streak = self._streak + 1 if same else int(biased)
-        self._streak_s = (self._streak_s + T if same else T) if biased else 0.0
-        self._streak_sign = math.copysign(1.0, b)
-        if biased and (self.active or self._streak >= cfg.confirm_checks):
+        if biased:
             if not self.active:
                 self.n_detections += 1
-                # the heading the checks saw drift while confirming went in uncorrected: its size,
-                # once, as heading variance of the next corrected step
-                self._pending_var = (b * self._streak_s) ** 2
-                log.info("gyro bias %.2e rad/s (+- %.1e) detected at t=%.2f s by %s over %.1f s", b, sigma, t,
-                         kind, T)
-            self.bias = b if b != 0.0 else 1e-15
-            self._extra_var_per_s = (sigma**2 + cfg.change_sigma_radps**2) * T
+                # the heading the pooled checks saw drift went in uncorrected: its size, once, as
+                # heading variance of the next corrected step
+                self._pending_var = (b_bar * sum(p[1] for p in pool)) ** 2
+                log.info("gyro bias %.2e rad/s (+- %.1e) detected at t=%.2f s by %s over %d checks", b_bar, s_bar, t,
+                         kind, len(pool))
+            self.bias = b_bar if b_bar != 0.0 else 1e-15
+            self._extra_var_per_s = (s_bar**2 + cfg.change_sigma_radps**2) * T
             self._active_until = t + cfg.hold_s
-        elif not biased and self.active:
-            log.info("gyro bias ends at t=%.2f s (%s: %.2e rad/s +- %.1e)", t, kind, b, sigma)
+        elif self.active:
+            log.info("gyro bias ends at t=%.2f s (%s: %.2e rad/s +- %.1e pooled)", t, kind, b_bar, s_bar)
             self._stop()
         return check
 
