@@ -23,7 +23,10 @@ with sigma ``sigma_delta / T`` (the fit's covariance times ``cov_scale``).
 The decision pools the last ``confirm_checks`` determined checks of the kind (consecutive, no
 two more than ``max_check_gap_s`` apart): their inverse-variance mean ``b_bar`` with sigma
 ``sigma_bar`` (a sparse field gives single checks of ~2-3 sigma at 0.002 rad/s; pooled, the
-evidence adds up). The gyro is *biased* when those checks all have one sign and ``|b_bar|``
+evidence adds up). The gyro is *biased* when those checks all have one sign, agree with each
+other (``sum((b_i - b_bar)^2 / sigma_i^2)`` inside chi2(n - 1) at ``agree_p``, to start a
+correction: one registration gone wrong, 8 sigma off on rocky-1km, does not carry an ordinary
+check with it; a running correction's pool may disagree, as the bias changes) and ``|b_bar|``
 exceeds both ``min_bias_radps`` and ``gate_sigma`` sigmas; then every odometry step's IMU
 rotation is turned back by ``b_bar dt`` about the gravity axis (the orientations
 ``R_ref_base0``, ``R_ref_base1`` of every later step are premultiplied by the accumulated
@@ -47,6 +50,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
+from scipy.stats import chi2
 
 from reloc.config import Interval, NonNegative, Positive, PositiveInt, checked
 from reloc.errors import ConfigError
@@ -78,7 +82,11 @@ class GyroConfig:
     min_inliers: PositiveInt = 5
     inlier_chi2: Positive = 11.34
     ambiguity_ratio: Fraction = 0.6
-    search_margin_m: NonNegative = 0.5
+    # translations looked for within search_margin_m + search_slip * |wheels| of the wheels' (the
+    # whole segment from standing still, as the slip monitor searches, holds too many chance
+    # clusters over seconds of motion; a stuck rover's checks go undetermined, the slip monitor's case)
+    search_margin_m: NonNegative = 0.3
+    search_slip: Fraction = 0.3
     # the fit's covariance is multiplied by this (pairs taken as independent): unscaled, its errors
     # against the truth were 0.75-1.02 / 1.84-2.06 / 2.1-3.0 sigma at the median / p90 / p99
     # (0.67 / 1.64 / 2.58 for a Gaussian; my2020 fault-free and bias step, rocky-1km and
@@ -89,6 +97,7 @@ class GyroConfig:
     gate_sigma: Positive = 4.0
     confirm_checks: PositiveInt = 2  # determined checks pooled for a decision (all of one sign)
     max_check_gap_s: Positive = 40.0  # checks further apart than this are not pooled
+    agree_p: Annotated[float, Interval(gt=0.0, lt=1.0)] = 0.99  # the pooled checks' homogeneity test
     change_sigma_radps: NonNegative = 1.0e-4  # how much the bias may change between two checks
     hold_s: Positive = 60.0  # a correction is dropped this long after the last check that measured it
 
@@ -114,10 +123,12 @@ def visual_yaw(p_ref: np.ndarray, cov_ref: np.ndarray, p_cur: np.ndarray, cov_cu
     cov_ref, cov_cur = np.asarray(cov_ref, dtype=float), np.asarray(cov_cur, dtype=float)
     up = np.asarray(up, dtype=float) / np.linalg.norm(up)
     n_hyp = int(round(cfg.max_delta_rad / cfg.delta_step_rad))
+    d_wheel = np.asarray(d_wheel, dtype=float)
+    region = (d_wheel, cfg.search_margin_m + cfg.search_slip * float(np.linalg.norm(d_wheel)))
     best = None
     for k in sorted(range(-n_hyp, n_hyp + 1), key=abs):  # zero first: ties keep the smallest turn
         Rk = exp_so3(up * (k * cfg.delta_step_rad)) @ R_ref_cur
-        vt = visual_translation(p_ref, cov_ref, p_cur, cov_cur, Rk, d_wheel, cfg)
+        vt = visual_translation(p_ref, cov_ref, p_cur, cov_cur, Rk, d_wheel, cfg, region)
         if vt is not None and (best is None or vt.n_inliers > best[1].n_inliers):
             best = (k * cfg.delta_step_rad, vt)
     if best is None:
@@ -280,8 +291,9 @@ class GyroMonitor:
         bs = np.array([p[2] for p in pool])
         b_bar = float(w @ bs / w.sum())
         s_bar = float(1.0 / math.sqrt(w.sum()))
+        agree = float(w @ (bs - b_bar) ** 2) <= chi2.ppf(cfg.agree_p, len(pool) - 1) if len(pool) > 1 else True
         biased = (len(pool) == cfg.confirm_checks and bool(np.all(np.sign(bs) == np.sign(b_bar)))
-                  and abs(b_bar) > max(cfg.min_bias_radps, cfg.gate_sigma * s_bar))
+                  and (agree or self.active) and abs(b_bar) > max(cfg.min_bias_radps, cfg.gate_sigma * s_bar))
         check = GyroCheck(t, t_ref, kind, vy.delta_rad, vy.sigma_rad * math.sqrt(cfg.cov_scale), b, sigma,
                           vy.n_inliers, biased)
         self.checks.append(check)

@@ -110,12 +110,14 @@ def visual_translation(
     R_ref_cur: np.ndarray,
     d_wheel: np.ndarray,
     cfg: Registration,
+    region: tuple[np.ndarray, float] | None = None,
 ) -> VisualTranslation | None:
     """The rover's translation between a reference frame (points ``p_ref`` (N, 3), covariances
     ``cov_ref`` (N, 3, 3), base_link then) and the current one (``p_cur`` (M, 3), ``cov_cur``),
     with ``R_ref_cur`` the rotation of the current base_link in the reference one (IMU) and
     ``d_wheel`` (3,) the wheels' translation (only bounding the search: anything from standing
-    still to ``search_margin_m`` beyond the wheels' motion).
+    still to ``search_margin_m`` beyond the wheels' motion; ``region`` (centre (3,), radius m)
+    replaces that ball).
 
     A static landmark seen in both frames satisfies ``p_ref = R p_cur + d``: every pair (i, j)
     proposes ``d = p_ref_i - R p_cur_j``; the densest cluster of proposals (pairs within their
@@ -129,9 +131,12 @@ def visual_translation(
     D = (p_ref[:, None, :] - q[None, :, :]).reshape(-1, 3)
     ii, jj = np.divmod(np.arange(D.shape[0]), len(q))
     # search region: the segment from standing still to the wheels' translation, widened
-    half = 0.5 * np.asarray(d_wheel, dtype=float)
-    radius = float(np.linalg.norm(half)) + cfg.search_margin_m
-    keep = np.linalg.norm(D - half, axis=1) <= radius
+    if region is None:
+        centre = 0.5 * np.asarray(d_wheel, dtype=float)
+        radius = float(np.linalg.norm(centre)) + cfg.search_margin_m
+    else:
+        centre, radius = np.asarray(region[0], dtype=float), float(region[1])
+    keep = np.linalg.norm(D - centre, axis=1) <= radius
     if keep.sum() < cfg.min_inliers:
         return None
     D, ii, jj = D[keep], ii[keep], jj[keep]

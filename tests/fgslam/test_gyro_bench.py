@@ -21,7 +21,7 @@ def test_the_bias_step_is_seen_measured_and_nothing_else(bias_dir, tmp_path, cap
     res = main([str(bias_dir), "--out", str(tmp_path / "gyro.json")])
     assert (tmp_path / "gyro.json").is_file() and '"n_checks"' in capsys.readouterr().out
     assert res["n_detections"] == 1 and res["n_biased_checks"] >= 2
-    assert res["false_alarms"] == 0 and res["missed"] <= 1  # the check across the step's edge may miss
+    assert res["false_alarms"] == 0 and res["missed"] <= 2  # the checks across the step's edges may miss
     # every biased check measured the bias over its interval (the step, 0.002 rad/s, or part of it
     # across the step's end) within 5e-4 rad/s, and no biased check lies outside the step
     est, true = res["estimated_bias_at_biased"], res["true_bias_at_biased"]
