@@ -157,6 +157,9 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
             "frame_latency": res.extra.get("frame_latency", {}),
             # the per-frame update: the EKF's landmark update; iSAM2's keyframe or fix update
             "update_p99_ms": res.stats.extra.get("latency_p99_ms", res.extra.get("frame_latency", {}).get("p99_ms")),
+            # every frame's update, CPU time of its thread: the cost without the machine's other load
+            "frame_cpu_latency": res.extra.get("frame_cpu_latency", {}),
+            "frame_cpu_p99_ms": res.extra.get("frame_cpu_latency", {}).get("p99_ms"),
         },
         "memory": res.extra.get("memory", []),
         "slip": res.extra.get("slip", {}),  # the wheel-slip monitor's checks and spells (reloc.slip)

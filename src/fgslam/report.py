@@ -94,6 +94,9 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
     for k in variants:
         row(f"{run_label(k)} update p99 [ms]", lambda s, k=k: s["runs"][k]["runtime"]["update_p99_ms"], "{:.1f}")
     for k in variants:
+        row(f"{run_label(k)} frame update CPU p99 [ms]", lambda s, k=k: s["runs"][k]["runtime"]["frame_cpu_p99_ms"],
+            "{:.1f}")
+    for k in variants:
         row(f"{run_label(k)} peak RSS [MB]", lambda s, k=k: (s["runs"][k]["memory"] or [{}])[-1]["peak_rss_mb"], "{:.0f}")
     for k in variants:
         if k.endswith("_reloc"):

@@ -296,6 +296,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         landmarks={k: be.landmark_map(k) for k in kinds}, stats=be.stats(),
         wall_s=wall, backend_s=be.busy_s, match_s=fixes.match_s, t_start=float(rec.t_first),
         t_end=float(rec.t_last), cpu_s=cpu, backend_cpu_s=be.busy_cpu_s,
-        extra={"frame_latency": be.frame_latency.to_dict(), "memory": rec.memory, "slip": slip.stats(),
+        extra={"frame_latency": be.frame_latency.to_dict(), "frame_cpu_latency": be.frame_cpu_latency.to_dict(),
+               "memory": rec.memory, "slip": slip.stats(),
                "gyro": gyro.stats()},
     )

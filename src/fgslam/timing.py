@@ -3,7 +3,9 @@ request).
 
 :class:`TimedBackend` forwards the :class:`reloc.backend.Backend` protocol; ``predict``,
 ``observe``, ``apply_fix``, ``expect_fix`` and ``trajectory`` add their wall time to ``busy_s``
-(each ``observe``, one landmark frame's update, also to ``frame_latency``)
+(each ``observe``, one landmark frame's update, also to ``frame_latency``, and its CPU time on
+the calling thread to ``frame_cpu_latency``: the update's cost, whatever else the machine runs;
+the passes limit BLAS to one thread, so the thread's clock holds all of it)
 and, with ``cpu=True``, their CPU time to ``busy_cpu_s`` (a process-CPU clock read costs ~1 us,
 ten times a wall-clock read: benchmarks ask for it, runs do not); the queries (``estimate``, ``landmark_map``, ``stats``) are
 not counted (an online relocalizer's map snapshot counts as matching time, see
@@ -18,7 +20,7 @@ import numpy as np
 
 from reloc.backend import Backend
 
-_clock, _cpu = time.perf_counter, time.process_time
+_clock, _cpu, _thread_cpu = time.perf_counter, time.process_time, time.thread_time
 
 
 def _no_cpu() -> float:
@@ -65,6 +67,7 @@ class TimedBackend:
         self.busy_cpu_s = 0.0
         self._cpu = _cpu if cpu else _no_cpu
         self.frame_latency = LatencyHistogram()  # each landmark frame's update (observe)
+        self.frame_cpu_latency = LatencyHistogram()  # the same, CPU time of the calling thread
 
     def _timed(self, fn, *args):
         w, c = _clock(), self._cpu()
@@ -77,8 +80,9 @@ class TimedBackend:
         return self._timed(self.inner.predict, step)
 
     def observe(self, obs):
-        w = _clock()
+        w, c = _clock(), _thread_cpu()
         out = self._timed(self.inner.observe, obs)
+        self.frame_cpu_latency.add(_thread_cpu() - c)
         self.frame_latency.add(_clock() - w)
         return out
 

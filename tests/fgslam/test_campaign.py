@@ -158,6 +158,7 @@ def test_a_kilometre_task_streams_its_preset_and_leaves_no_files(tmp_path, monke
         assert 0.0 < run["ate_rmse_m"] < 0.1 and run["drift_pct"] is not None
         assert run["n_landmarks"] > 10 and run["nees_position"]["n_eff"] > 1
         assert rec["runtime"]["runs_update_p99_ms"][key] > 0
+        assert 0 < rec["runtime"]["runs_frame_cpu_p99_ms"][key] < 1e3
     assert res["runs"]["dead_reckoning"]["ate_rmse_m"] > 2 * res["runs"]["ekf"]["ate_rmse_m"]
     assert res["fixes"]["attempts"] > 0
     assert rec["runtime"]["peak_rss_mb"] > 100

@@ -40,6 +40,8 @@ SUMMARY_ROWS = [
     ("runtime.real_time_factor", "Real-time factor (whole comparison)", 1.0),
     ("runtime.runs_update_p99_ms.ekf_reloc", "EKF + reloc update p99 [ms]", 1.0),
     ("runtime.runs_update_p99_ms.isam2_reloc", "iSAM2 + reloc update p99 [ms]", 1.0),
+    ("runtime.runs_frame_cpu_p99_ms.ekf_reloc", "EKF + reloc frame update CPU p99 [ms]", 1.0),
+    ("runtime.runs_frame_cpu_p99_ms.isam2_reloc", "iSAM2 + reloc frame update CPU p99 [ms]", 1.0),
     ("runtime.peak_rss_mb", "Worker peak RSS [MB]", 1.0),
 ]
 TASK_COLUMNS = [

@@ -91,6 +91,8 @@ def summarise_comparison(metrics: dict, baseline: str) -> tuple[dict, dict]:
         "runs_wall_s": {k: _num(r.get("runtime", {}).get("wall_s")) for k, r in runs.items()},
         "runs_update_p99_ms": {k: _num(r["runtime"]["update_p99_ms"]) for k, r in runs.items()
                                if r.get("runtime", {}).get("update_p99_ms") is not None},
+        "runs_frame_cpu_p99_ms": {k: _num(r["runtime"]["frame_cpu_p99_ms"]) for k, r in runs.items()
+                                  if r.get("runtime", {}).get("frame_cpu_p99_ms") is not None},
         # the worker process's high-water mark when each pass ended (its passes run one after
         # another, and a worker keeps its mark across the tasks it ran before)
         "runs_peak_rss_mb": {k: _num(max(m["peak_rss_mb"] for m in r["memory"])) for k, r in runs.items()
