@@ -55,8 +55,8 @@ from scipy.stats import chi2
 from reloc.config import Interval, NonNegative, Positive, PositiveInt, checked
 from reloc.errors import ConfigError
 from reloc.geometry import exp_so3
-from reloc.odometry import OdometryStep, step_translation
-from reloc.slip import visual_translation
+from reloc.odometry import OdometryStep
+from reloc.slip import FrameReference, finite_points, visual_translation
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ def visual_yaw(p_ref: np.ndarray, cov_ref: np.ndarray, p_cur: np.ndarray, cov_cu
     p_ref, p_cur = np.asarray(p_ref, dtype=float), np.asarray(p_cur, dtype=float)
     cov_ref, cov_cur = np.asarray(cov_ref, dtype=float), np.asarray(cov_cur, dtype=float)
     up = np.asarray(up, dtype=float) / np.linalg.norm(up)
-    n_hyp = int(round(cfg.max_delta_rad / cfg.delta_step_rad))
+    n_hyp = round(cfg.max_delta_rad / cfg.delta_step_rad)
     d_wheel = np.asarray(d_wheel, dtype=float)
     region = (d_wheel, cfg.search_margin_m + cfg.search_slip * float(np.linalg.norm(d_wheel)))
     best = None
@@ -151,19 +151,7 @@ def visual_yaw(p_ref: np.ndarray, cov_ref: np.ndarray, p_cur: np.ndarray, cov_cu
         cov = np.linalg.inv(A)
         x = cov @ b
         d, delta = d + x[:3], delta + float(x[3])
-    return VisualYaw(float(delta), math.sqrt(max(float(cov[3, 3]), 0.0)), d, int(len(i)))
-
-
-@dataclass
-class _Reference:
-    """A kind's reference frame, the IMU's rotation since it and the gravity axis then."""
-
-    t: float
-    xyz: np.ndarray
-    cov: np.ndarray
-    up: np.ndarray
-    R: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))  # current base in the reference base
-    d: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # wheels' translation
+    return VisualYaw(float(delta), math.sqrt(max(float(cov[3, 3]), 0.0)), d, len(i))
 
 
 @dataclass(frozen=True)
@@ -189,7 +177,7 @@ class GyroMonitor:
 
     def __init__(self, config: GyroConfig | None = None) -> None:
         self.cfg = config or GyroConfig()
-        self._refs: dict[str, _Reference] = {}
+        self._refs: dict[str, FrameReference] = {}
         self.bias = 0.0  # applied bias (rad/s about the gravity axis; 0: the IMU is trusted)
         self._psi = 0.0  # accumulated heading correction (rad) applied to the IMU's orientations
         self._extra_var_per_s = 0.0  # heading variance added per second while correcting
@@ -213,13 +201,8 @@ class GyroMonitor:
         reference first."""
         if not self.cfg.enabled:
             return step
-        dR = step.dR_base
         self._up = np.asarray(step.R_ref_base1, dtype=float)[2, :]  # R^T e_z
-        if self._refs:
-            d = step_translation(step, dR)
-            for ref in self._refs.values():
-                ref.d = ref.d + ref.R @ d
-                ref.R = ref.R @ dR
+        FrameReference.advance_all(self._refs.values(), step, step.dR_base)
         if self.active and step.t1 > self._active_until:
             log.info("gyro bias correction ends at t=%.2f s: no check measured it for %.1f s", step.t1, self.cfg.hold_s)
             self._stop()
@@ -247,10 +230,7 @@ class GyroMonitor:
         ref = self._refs.get(kind)
         if ref is not None and t - ref.t < self.cfg.baseline_s:
             return None
-        xyz = np.asarray(obs.xyz_base_m, dtype=float).reshape(-1, 3)
-        cov = np.asarray(obs.cov_base_m2, dtype=float).reshape(-1, 3, 3)
-        finite = np.isfinite(xyz).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
-        xyz, cov = xyz[finite], cov[finite]
+        xyz, cov = finite_points(obs)
         check = None
         if (ref is not None and t - ref.t <= self.cfg.max_baseline_s
                 and float(np.linalg.norm(ref.d)) >= self.cfg.min_wheel_distance_m):
@@ -259,7 +239,7 @@ class GyroMonitor:
                 self.n_undetermined += 1
             else:
                 check = self._decide(t, ref.t, kind, vy)
-        self._refs[kind] = _Reference(t, xyz, cov, self._up.copy())
+        self._refs[kind] = FrameReference(t, xyz, cov, up=self._up.copy())
         return check
 
     def stats(self) -> dict:

@@ -181,14 +181,34 @@ def _one_to_one(cand: np.ndarray, cost: np.ndarray, ii: np.ndarray, jj: np.ndarr
 
 
 @dataclass
-class _Reference:
-    """A kind's reference frame and the wheels' motion since it (its base_link)."""
+class FrameReference:
+    """A kind's reference frame (its points and covariances in base_link then) and the motion
+    since it: the current base_link's rotation ``R`` in the reference one and the wheels'
+    translation ``d`` (IMU rotation, commanded distance). Shared with :mod:`reloc.gyro`."""
 
     t: float
     xyz: np.ndarray
     cov: np.ndarray
     R: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))  # current base in the reference base
     d: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # wheels' translation
+    up: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # gravity axis then
+
+    @staticmethod
+    def advance_all(refs, step: OdometryStep, dR: np.ndarray) -> None:
+        """Integrate one raw odometry step (its rotation ``dR``) into every reference of ``refs``."""
+        if refs:
+            d = step_translation(step, dR)
+            for ref in refs:
+                ref.d = ref.d + ref.R @ d
+                ref.R = ref.R @ dR
+
+
+def finite_points(obs) -> tuple[np.ndarray, np.ndarray]:
+    """A landmark frame's points (N, 3) and covariances (N, 3, 3) in base_link, non-finite rows dropped."""
+    xyz = np.asarray(obs.xyz_base_m, dtype=float).reshape(-1, 3)
+    cov = np.asarray(obs.cov_base_m2, dtype=float).reshape(-1, 3, 3)
+    finite = np.isfinite(xyz).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+    return xyz[finite], cov[finite]
 
 
 @dataclass(frozen=True)
@@ -214,7 +234,7 @@ class SlipMonitor:
 
     def __init__(self, config: SlipConfig | None = None) -> None:
         self.cfg = config or SlipConfig()
-        self._refs: dict[str, _Reference] = {}
+        self._refs: dict[str, FrameReference] = {}
         self.slip = 0.0  # applied slip ratio (0: the wheels are trusted)
         self._extra_var_per_m = 0.0  # forward variance added per metre of wheel motion
         self._active_until = -math.inf
@@ -238,11 +258,7 @@ class SlipMonitor:
             return step
         dist = step.v_mps * step.dt
         if self._refs:
-            dR = step.dR_base
-            d = step_translation(step, dR)
-            for ref in self._refs.values():
-                ref.d = ref.d + ref.R @ d
-                ref.R = ref.R @ dR
+            FrameReference.advance_all(self._refs.values(), step, step.dR_base)
         if not self.active:
             return step
         if step.t1 > self._active_until:
@@ -261,10 +277,7 @@ class SlipMonitor:
         (unless the wheels have not yet turned enough to compare)."""
         if not self.cfg.enabled:
             return None
-        xyz = np.asarray(obs.xyz_base_m, dtype=float).reshape(-1, 3)
-        cov = np.asarray(obs.cov_base_m2, dtype=float).reshape(-1, 3, 3)
-        finite = np.isfinite(xyz).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
-        xyz, cov = xyz[finite], cov[finite]
+        xyz, cov = finite_points(obs)
         t = float(obs.t)
         ref = self._refs.get(kind)
         check = None
@@ -277,7 +290,7 @@ class SlipMonitor:
                 self.n_undetermined += 1
             else:
                 check = self._decide(t, ref.t, kind, ref.d, vt)
-        self._refs[kind] = _Reference(t, xyz, cov)
+        self._refs[kind] = FrameReference(t, xyz, cov)
         return check
 
     def stats(self) -> dict:

@@ -61,7 +61,7 @@ def test_visual_yaw_recovers_the_imu_heading_error_within_its_sigma(seed, dx, ya
 
 def test_visual_yaw_declines_unrelated_frames():
     rng = np.random.default_rng(0)
-    mk = lambda: np.column_stack([rng.uniform(1, 8, 25), rng.uniform(-3, 3, 25), np.zeros(25)])  # noqa: E731
+    mk = lambda: np.column_stack([rng.uniform(1, 8, 25), rng.uniform(-3, 3, 25), np.zeros(25)])
     a = _see(rng, mk(), np.eye(3), np.zeros(3), 0.0, n_clutter=0, drop=0.0)
     b = _see(rng, mk(), np.eye(3), np.zeros(3), 8.0, n_clutter=0, drop=0.0)
     assert visual_yaw(a.xyz_base_m, a.cov_base_m2, b.xyz_base_m, b.cov_base_m2, np.eye(3), UP,
@@ -79,7 +79,7 @@ def _drive(cfg, bias=0.002, window=(30.0, 90.0), t_end=150.0, v=0.08, w=0.01, dt
     yaw_imu = 0.0
     yaw_corr = 0.0  # heading integrated from the corrected steps
     steps = []
-    for k in range(int(round(t_end / dt))):
+    for k in range(round(t_end / dt)):
         t0, t1 = k * dt, (k + 1) * dt
         b = bias if window[0] <= t0 < window[1] else 0.0
         R0 = exp_so3(np.array([0.0, 0.0, yaw_imu]))
@@ -113,19 +113,19 @@ def test_a_bias_step_is_detected_and_the_heading_corrected_then_released():
 
 
 def test_a_healthy_gyro_is_never_corrected():
-    mon, steps, yaw_true, yaw_imu, yaw_corr = _drive(GyroConfig(), bias=0.0)
+    mon, steps, _, yaw_imu, yaw_corr = _drive(GyroConfig(), bias=0.0)
     assert len(mon.checks) >= 15 and mon.stats()["n_biased_checks"] == 0
     assert yaw_corr == pytest.approx(yaw_imu) and all(s.extra_yaw_var_rad2 == 0.0 for s in steps)
 
 
 def test_a_blind_camera_releases_the_correction_after_hold_s():
-    mon, steps, *_ = _drive(GyroConfig(hold_s=10.0), window=(30.0, 150.0), blind=(70.0, 150.0))
+    _, steps, *_ = _drive(GyroConfig(hold_s=10.0), window=(30.0, 150.0), blind=(70.0, 150.0))
     widened_t = [s.t0 for s in steps if s.extra_yaw_var_rad2 > 0]
     assert widened_t and max(widened_t) < 70.0 + 10.0 + 0.1
 
 
 def test_disabled_monitor_changes_nothing():
-    mon, steps, yaw_true, yaw_imu, yaw_corr = _drive(GyroConfig(enabled=False))
+    mon, _, _, yaw_imu, yaw_corr = _drive(GyroConfig(enabled=False))
     assert yaw_corr == pytest.approx(yaw_imu) and mon.stats()["n_checks"] == 0
 
 

@@ -14,9 +14,6 @@ own sigmas (median / p90 / p99, 0.67 / 1.64 / 2.58 for a Gaussian), which is wha
 
 from __future__ import annotations
 
-import argparse
-import json
-import logging
 from collections import Counter
 from pathlib import Path
 
@@ -80,17 +77,9 @@ def replay(directory: Path, config=None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("directory", type=Path)
-    ap.add_argument("--out", type=Path, help="write the results as JSON here")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING)
-    res = replay(args.directory)
-    text = json.dumps(res, indent=1)
-    if args.out is not None:
-        args.out.write_text(text)
-    print(text)
-    return res
+    from fgslam.bench.sim_dir import replay_main
+
+    return replay_main(__doc__.splitlines()[0], replay, argv)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """What the benchmarks share about an ``fgslam sim`` directory: the back-end overrides its
-``backend.yaml`` gives, and the first seconds of its stream."""
+``backend.yaml`` gives, the first seconds of its stream, and the command line of the monitors'
+replays over it (``python -m fgslam.bench.slip DIR``, ``python -m fgslam.bench.gyro DIR``)."""
 
 from __future__ import annotations
 
@@ -34,3 +35,22 @@ def first_seconds(measurements: Iterable, duration_s: float | None) -> Iterator:
         if m.t > t_end:
             return
         yield m
+
+
+def replay_main(description: str, replay, argv: list[str] | None = None) -> dict:
+    """``DIR [--out FILE]``: ``replay(DIR)``, printed and written as JSON."""
+    import argparse
+    import json
+    import logging
+
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("directory", type=Path)
+    ap.add_argument("--out", type=Path, help="write the results as JSON here")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    res = replay(args.directory)
+    text = json.dumps(res, indent=1)
+    if args.out is not None:
+        args.out.write_text(text)
+    print(text)
+    return res

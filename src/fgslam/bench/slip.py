@@ -13,10 +13,7 @@ for a Gaussian), which is what ``visual_cov_scale`` was measured from.
 
 from __future__ import annotations
 
-import argparse
-import json
 from collections import Counter
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -69,17 +66,9 @@ def replay(directory: Path, config=None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("directory", type=Path)
-    ap.add_argument("--out", type=Path, help="write the results as JSON here")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING)
-    res = replay(args.directory)
-    text = json.dumps(res, indent=1)
-    if args.out is not None:
-        args.out.write_text(text)
-    print(text)
-    return res
+    from fgslam.bench.sim_dir import replay_main
+
+    return replay_main(__doc__.splitlines()[0], replay, argv)
 
 
 if __name__ == "__main__":
