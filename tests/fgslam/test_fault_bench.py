@@ -49,6 +49,7 @@ def test_a_stuck_rover_is_held_by_the_slip_monitor(stuck):
     for k in VARIANTS:
         m = entry["runs"][k]
         assert goals_met(m)["finished"], k
+        assert m["monitors"]["slip"]["n_detections"] >= 1 and m["monitors"]["gyro"]["n_detections"] == 0, k
         assert m["end_rmse_m"] < 0.05, k
         assert m["blind"]["verdict"] != "optimistic", k
 

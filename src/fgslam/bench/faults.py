@@ -118,6 +118,8 @@ def fault_metrics(res, gt, window: tuple[float, float] | None, free_ate_m: float
     out["end_ratio"] = out["end_rmse_m"] / free_ate_m if free_ate_m > 0 else math.nan
     out["accepted_fixes"] = sum(1 for o in res.outcomes if o.accepted)
     out["rejected_fixes"] = sum(1 for o in res.outcomes if not o.accepted)
+    # what the front-end monitors saw (reloc.slip, reloc.gyro): detections outside a fault are false alarms
+    out["monitors"] = {k: res.extra[k] for k in ("slip", "gyro") if k in res.extra}
     if window is None:
         return out
     a, b = window
