@@ -35,11 +35,11 @@ from fgslam.relocalizer import FixAttempt
 from fgslam.timing import TimedBackend
 from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, PoseEstimate, Trajectory
 from reloc.config import NonNegativeInt, Positive, checked
+from reloc.gyro import GyroConfig, GyroMonitor
 from reloc.kinds import UnknownKindError, kind_of
 from reloc.measurements import CmdVel, GlobalFix, GroundTruthPose, ImuSample, WheelOdometry
 from reloc.odometry import OdometryAssembler
 from reloc.rows import RowBuffer
-from reloc.gyro import GyroConfig, GyroMonitor
 from reloc.slip import SlipConfig, SlipMonitor
 
 log = logging.getLogger(__name__)
