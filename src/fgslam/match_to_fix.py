@@ -14,6 +14,7 @@ import numpy as np
 
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
+from reloc.covariance import psd_part
 from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix
 
@@ -54,8 +55,7 @@ def rover_relative_cov_xy(landmark_cov_xy: np.ndarray, rover_cov_xy: np.ndarray)
     with the landmark."""
     L = np.asarray(landmark_cov_xy, dtype=float).reshape(-1, 2, 2)
     D = np.asarray(rover_cov_xy, dtype=float)[None, :2, :2] - L
-    w, V = np.linalg.eigh(0.5 * (D + np.swapaxes(D, 1, 2)))
-    return np.einsum("nij,nj,nkj->nik", V, np.clip(w, 0.0, None), V)
+    return psd_part(D)
 
 
 def fix_from_similarity(

@@ -27,3 +27,45 @@ def test_growth_is_the_positive_part_of_the_covariance_difference():
         w, V = np.linalg.eigh(0.5 * (D + D.T))
         np.testing.assert_allclose(g, cov_world_to_gtsam(sm.T_kf[:3, :3], (V * np.maximum(w, 0)) @ V.T), atol=1e-12)
         assert np.linalg.eigvalsh(g).min() >= -1e-12
+
+
+def _block_matrix(P):
+    k = P.shape[0]
+    return np.transpose(P, (0, 2, 1, 3)).reshape(6 * k, 6 * k)
+
+
+def test_the_shared_growth_of_a_set_of_landmarks_is_a_covariance():
+    """Growths that are positive parts of covariance differences are not ordered in time, and the
+    block matrix "growth since the later of the two" built from them directly can be indefinite
+    (joint distances below zero passed any set of pairs after a blind spell). The nested
+    construction is positive semi-definite, each diagonal block at least the landmark's own
+    growth, and equal times share the same block."""
+    from fgslam.smoother.landmarks import nested_growth
+
+    rng = np.random.default_rng(5)
+    found_indefinite = False
+    for trial in range(200):
+        n_t = int(rng.integers(2, 6))
+        times = np.sort(rng.uniform(0, 100, n_t))
+        table = {}
+        for t in times:  # unordered PSD growths, zero-ish for the newest
+            A = rng.normal(size=(6, 3)) * rng.uniform(0.01, 1.0)
+            table[float(t)] = A @ A.T
+
+        def cov_growth(t_last):
+            return np.stack([table[float(t)] for t in t_last])
+
+        t_last = rng.choice(times, size=int(rng.integers(2, 8)))
+        P = nested_growth(t_last, cov_growth)
+        k = len(t_last)
+        assert P.shape == (k, k, 6, 6)
+        assert np.linalg.eigvalsh(_block_matrix(P)).min() >= -1e-9, trial
+        for a in range(k):
+            assert np.linalg.eigvalsh(P[a, a] - table[float(t_last[a])]).min() >= -1e-9
+            for b in range(k):
+                if t_last[a] == t_last[b]:
+                    np.testing.assert_allclose(P[a, b], P[a, a])
+        later = np.maximum(t_last[:, None], t_last[None, :]).ravel()
+        direct = cov_growth(later).reshape(k, k, 6, 6)
+        found_indefinite |= np.linalg.eigvalsh(_block_matrix(direct)).min() < -1e-6
+    assert found_indefinite  # the direct construction fails where the nested one holds

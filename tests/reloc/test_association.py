@@ -206,3 +206,85 @@ def test_too_few_pairs_cannot_re_place_an_uncertain_prediction():
     assert sure.landmark_of[0] == 0
     off = associate(z[:1], R[:1], zhat, wide, AssociationConfig(min_pairs_uncertain=1))
     assert off.landmark_of[0] == 0
+
+
+def _shared_pose_cov(S_pose, Rz, old):
+    """Joint innovation covariance of pairs whose landmarks in ``old`` share the pose error
+    ``S_pose`` (landmarks mapped before a blind spell) while the others moved with the pose
+    (mapped since: predicted as well as measured)."""
+
+    def joint_cov(det, cand):
+        k = len(det)
+        S = np.zeros((3 * k, 3 * k))
+        for a in range(k):
+            for b in range(k):
+                if cand[a] in old and cand[b] in old:
+                    S[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] += S_pose
+            S[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] += Rz[det[a]]
+        return S
+
+    return joint_cov
+
+
+def test_an_uncertain_pair_with_a_compatible_alternative_is_not_associated():
+    """After a blind spell (1 m of pose sigma) one detection falls near two old landmarks 0.8 m
+    apart; two well predicted pairs on rocks mapped since the spell say nothing about which:
+    the pair is dropped (the wrong one re-placed the rover with centimetre confidence), the well
+    predicted ones kept, and the detection is neither associated nor new."""
+    S_pose = np.eye(3) * 1.0**2
+    Rz = np.tile(np.eye(3) * 0.02**2, (3, 1, 1))
+    zhat = np.array([[3.0, 1.0, 0.0], [3.0, 1.8, 0.0], [5.0, -2.0, 0.0], [6.0, 2.0, 0.0]])
+    old = {0, 1}
+    S_hat = np.stack([S_pose, S_pose, Rz[0], Rz[0]])
+    z = np.array([[3.3, 1.5, 0.0], [5.01, -2.0, 0.0], [6.0, 2.01, 0.0]])  # the rover 0.3 / 0.5 m off
+    joint_cov = _shared_pose_cov(S_pose, Rz, old)
+    a = associate(z, Rz, zhat, S_hat, joint_cov=joint_cov)
+    assert a.n_ambiguous_dropped == 1
+    assert a.landmark_of.tolist() == [-1, 2, 3]
+    assert not a.is_new.any() and a.n_ambiguous == 1
+    off = associate(z, Rz, zhat, S_hat, AssociationConfig(ambiguity_test=False), joint_cov=joint_cov)
+    assert off.landmark_of[0] in (0, 1) and off.n_ambiguous_dropped == 0
+    # the other way round: two detections in one old landmark's gate
+    z2 = np.array([[3.3, 1.5, 0.0], [3.3, 0.7, 0.0], [5.01, -2.0, 0.0], [6.0, 2.01, 0.0]])
+    Rz2 = np.tile(np.eye(3) * 0.02**2, (4, 1, 1))
+    a2 = associate(z2, Rz2, zhat[[0, 2, 3]], S_hat[[0, 2, 3]], joint_cov=_shared_pose_cov(S_pose, Rz2, {0}))
+    assert a2.n_ambiguous_dropped == 1 and a2.landmark_of.tolist() == [-1, -1, 1, 2]
+
+
+def test_uncertain_pairs_that_the_others_tie_down_are_kept():
+    """Three old landmarks seen again after a blind spell, with a fourth 1 m from one of them:
+    each gate (1 m of pose sigma) holds a rival, but the shared pose error the other pairs fix
+    makes the swap jointly incompatible, so the rover is re-placed."""
+    S_pose = np.eye(3) * 1.0**2
+    zhat = np.array([[3.0, -2.0, 0.0], [4.0, 2.0, 0.0], [7.0, 0.0, 0.0], [7.0, 1.0, 0.0]])
+    S_hat = np.tile(S_pose, (4, 1, 1))
+    z = zhat[:3] + np.array([0.5, 0.3, 0.0])
+    Rz = np.tile(np.eye(3) * 0.02**2, (3, 1, 1))
+    joint_cov = _shared_pose_cov(S_pose, Rz, {0, 1, 2, 3})
+    a = associate(z, Rz, zhat, S_hat, joint_cov=joint_cov)
+    assert a.landmark_of.tolist() == [0, 1, 2]
+    assert a.n_ambiguous_dropped == 0 and a.n_uncertain_dropped == 0
+
+
+def test_a_joint_covariance_that_is_not_positive_definite_passes_nothing():
+    """A caller's joint covariance with a direction of negative variance (an inconsistent model)
+    gave joint distances below zero, and any set of pairs passed; the direction now reads as
+    near-certain and the pairs that disagree along it are dropped."""
+    zhat = np.array([[3.0, -1.0, 0.0], [4.0, 1.0, 0.0], [5.0, 0.0, 0.0]])
+    z = zhat.copy()
+    z[0] += [0.6, 0.0, 0.0]  # 0.6 m off, inside its own (1 m) gate, and the others are not
+    Rz = np.tile(np.eye(3) * 0.02**2, (3, 1, 1))
+    S_hat = np.tile(np.eye(3) * 1.0, (3, 1, 1))
+
+    def indefinite(det, cand):
+        k = len(det)
+        S = np.kron(np.ones((k, k)), np.eye(3) * 1.0)
+        for i in range(k):
+            S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += Rz[det[i]]
+        v = np.zeros(3 * k)
+        v[0] = 1.0  # pair 0's x: variance pushed below zero
+        return S - 3.0 * np.outer(v, v)
+
+    a = associate(z, Rz, zhat, S_hat, AssociationConfig(min_pairs_uncertain=1, ambiguity_test=False),
+                  joint_cov=indefinite)
+    assert a.landmark_of[0] == -1 and a.n_jc_dropped >= 1

@@ -52,20 +52,15 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.calibration import calibration_report
+from reloc.covariance import psd_part
 from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep
 
 log = logging.getLogger(__name__)
 
 
-def _psd(C: np.ndarray, floor: float = 0.0) -> np.ndarray:
-    """The symmetric part of ``C`` with its eigenvalues clipped to at least ``floor``."""
-    w, V = np.linalg.eigh(0.5 * (C + C.T))
-    return (V * np.maximum(w, floor)) @ V.T
-
-
 def _pose_cov_prior(initial: PoseEstimate) -> np.ndarray:
-    return _psd(cov_world_to_gtsam(initial.T_world_base[:3, :3], np.asarray(initial.cov, dtype=float)), 1e-10)
+    return psd_part(cov_world_to_gtsam(initial.T_world_base[:3, :3], np.asarray(initial.cov, dtype=float)), 1e-10)
 
 
 class Isam2Smoother(LateFixes, Backend):
@@ -204,7 +199,7 @@ class Isam2Smoother(LateFixes, Backend):
                 continue
             G = self._growth.get(int(i))
             if G is None:
-                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], _psd(C_now - self.kfs.online_cov(i)))
+                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], psd_part(C_now - self.kfs.online_cov(i)))
             out[idx == i] = G
         return out
 

@@ -19,12 +19,34 @@ import numpy as np
 from fgslam.smoother.config import LandmarkConfig
 from reloc.association import associate
 from reloc.budget import innovation_trace, select_observations
+from reloc.covariance import psd_part
 from reloc.geometry import skew
 from reloc.landmark_model import point_in_base, point_to_world
 from reloc.persistence import RecentDetections, persistence_agree, persistence_slack
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
 _VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
+
+
+def nested_growth(t_last: np.ndarray, cov_growth) -> np.ndarray:
+    """(k, k, 6, 6): the pose growth shared by landmarks ``a`` and ``b`` last seen at ``t_last``
+    (k,): the growth since the later of the two, ``cov_growth(t)`` (k,) -> (k, 6, 6), built so
+    that the block matrix is positive semi-definite. Each growth is the positive part of a
+    difference of covariances, which is not ordered in time, and the block matrix of the growths
+    themselves was indefinite after a blind spell (joint distances below zero, so any set of pairs
+    passed the joint-compatibility test). Here, from the newest time to the oldest, each adds the
+    positive part of what its growth holds beyond the sum so far: every block is at least the
+    growth it stands for, and a sum of such nested increments is a covariance."""
+    t_last = np.asarray(t_last, dtype=float)
+    times, inverse = np.unique(-t_last, return_inverse=True)  # newest first
+    G = cov_growth(-times)
+    acc = np.zeros((6, 6))
+    shared = np.empty_like(G)
+    for r in range(len(times)):
+        acc = acc + psd_part(G[r] - acc)
+        shared[r] = acc
+    rank = inverse.reshape(-1)
+    return shared[np.minimum(rank[:, None], rank[None, :])]
 
 
 @dataclass
@@ -154,8 +176,7 @@ class LandmarkStore:
                 k = det.size
                 Hc = H[ci]
                 if grow:
-                    later = np.maximum(t_last[ci][:, None], t_last[ci][None, :]).ravel()
-                    P_pair = (cov_rel_pose + cov_growth(later)).reshape(k, k, 6, 6)
+                    P_pair = cov_rel_pose + nested_growth(t_last[ci], cov_growth)
                     S = np.einsum("aip,abpq,bjq->aibj", Hc, P_pair, Hc)
                 else:
                     S = np.einsum("aip,pq,bjq->aibj", Hc, cov_rel_pose, Hc)
