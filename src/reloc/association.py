@@ -236,6 +236,12 @@ def _pd_inverse(S: np.ndarray) -> np.ndarray:
     return (V / w) @ V.T
 
 
+def _replaced(a: np.ndarray, k: int, value: int) -> np.ndarray:
+    out = a.copy()
+    out[k] = value
+    return out
+
+
 def _unambiguous(det, cand, gated, z_base, zhat_base, R_z, S_hat, config, joint_cov):
     """Drop the uncertain pairs of a jointly compatible set (det, cand) that have a jointly
     compatible alternative: another landmark in the detection's gate, or another detection in the
@@ -248,22 +254,9 @@ def _unambiguous(det, cand, gated, z_base, zhat_base, R_z, S_hat, config, joint_
     limit = _chi2_limit(config.joint_confidence, 3 * det.size)
     ambiguous = np.zeros(det.size, dtype=bool)
     for k in np.flatnonzero(unc):
-        alt_cand = [j for j in np.flatnonzero(gated[det[k]]) if j != cand[k] and j not in cand]
-        alt_det = [i for i in np.flatnonzero(gated[:, cand[k]]) if i != det[k] and i not in det]
-        for j in alt_cand:
-            c2 = cand.copy()
-            c2[k] = j
-            if _joint_d2(det, c2, z_base, zhat_base, R_z, S_hat, joint_cov) <= limit:
-                ambiguous[k] = True
-                break
-        if ambiguous[k]:
-            continue
-        for i in alt_det:
-            d_alt = det.copy()
-            d_alt[k] = i
-            if _joint_d2(d_alt, cand, z_base, zhat_base, R_z, S_hat, joint_cov) <= limit:
-                ambiguous[k] = True
-                break
+        swaps = [(det, _replaced(cand, k, j)) for j in np.flatnonzero(gated[det[k]]) if j not in cand]
+        swaps += [(_replaced(det, k, i), cand) for i in np.flatnonzero(gated[:, cand[k]]) if i not in det]
+        ambiguous[k] = any(_joint_d2(d, c, z_base, zhat_base, R_z, S_hat, joint_cov) <= limit for d, c in swaps)
     return det[~ambiguous], cand[~ambiguous], int(ambiguous.sum())
 
 
