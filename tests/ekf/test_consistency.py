@@ -25,8 +25,8 @@ START = PoseEstimate(0.0, np.eye(4), np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8
 
 def anees_band(n_runs: int) -> tuple[float, float]:
     """Two-sided 99 % band of the ANEES (3 dof) over ``n_runs``. At 95 % this test sat on the
-    lower edge: the same code gives ANEES 1.517 on one machine against [1.55, 4.92] (its BLAS
-    changes which pairs the synthetic frames associate) and passed on another; the EKF is
+    lower edge: the same code gives ANEES 1.517 on one machine against [1.55, 4.92] and passed
+    on another (not the numpy or scipy version, nor BLAS threads; the cause not found); the EKF is
     conservative here by design (its slip model, docs/ekf.md), and the band still fails an
     optimistic filter or one twice as pessimistic."""
     return chi2.ppf(0.005, 3 * n_runs) / n_runs, chi2.ppf(0.995, 3 * n_runs) / n_runs
