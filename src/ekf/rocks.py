@@ -86,7 +86,8 @@ class RockUpdate:
         self.kind = kind.name
         self.code = kind_code(kind.name)
         self.counts = {"n_frames_skipped": 0, "n_associated": 0, "n_initialised": 0, "n_ambiguous": 0,
-                       "n_jc_dropped": 0, "n_ambiguous_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0, "n_forgotten": 0,
+                       "n_jc_dropped": 0, "n_ambiguous_dropped": 0, "n_dropped_tentative": 0, "n_evicted": 0,
+                       "n_forgotten": 0,
                        "n_budget_skipped": 0, "n_budget_new_skipped": 0, "n_lone_pairs_skipped": 0,
                        "n_not_persistent": 0, "n_first_sightings": 0}
 
@@ -229,8 +230,8 @@ class RockUpdate:
             if a_cfg.persistence_s > 0:
                 s.recent.record(new_ids, obs.t, l_new, cov_w)
         self._bump(count, n_associated=det.size, n_initialised=new.size, n_ambiguous=assoc.n_ambiguous,
-                   n_jc_dropped=assoc.n_jc_dropped,
-                   n_ambiguous_dropped=assoc.n_ambiguous_dropped, n_dropped_tentative=stale.sum(), n_evicted=evict.sum(), n_forgotten=far.sum(),
+                   n_jc_dropped=assoc.n_jc_dropped, n_ambiguous_dropped=assoc.n_ambiguous_dropped,
+                   n_dropped_tentative=stale.sum(), n_evicted=evict.sum(), n_forgotten=far.sum(),
                    n_budget_skipped=det.size - n_used, n_budget_new_skipped=n_new - new.size,
                    n_lone_pairs_skipped=n_lone, n_not_persistent=n_not_persistent,
                    n_first_sightings=n_first)

@@ -210,16 +210,22 @@ def associate(
     return Association(landmark_of, is_new, d2_out, n_ambiguous, n_out, n_jc, n_unc, n_amb)
 
 
-def _joint_d2(det, cand, z_base, zhat_base, R_z, S_hat, joint_cov) -> float:
-    """Joint squared Mahalanobis distance of the stacked innovation of pairs (det, cand)."""
-    nu = (z_base[det] - zhat_base[cand]).reshape(-1)
+def _joint_matrix(det, cand, R_z, S_hat, joint_cov) -> np.ndarray:
+    """(3k, 3k) symmetric innovation covariance of pairs (det, cand): the caller's full one, or the
+    block-diagonal ``S_hat + R_z`` without a callback."""
     if joint_cov is not None:
         S = np.asarray(joint_cov(det, cand), dtype=float)
     else:
         S = np.zeros((3 * det.size, 3 * det.size))
         for i in range(det.size):
             S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = S_hat[cand[i]] + R_z[det[i]]
-    S = 0.5 * (S + S.T)
+    return 0.5 * (S + S.T)
+
+
+def _joint_d2(det, cand, z_base, zhat_base, R_z, S_hat, joint_cov) -> float:
+    """Joint squared Mahalanobis distance of the stacked innovation of pairs (det, cand)."""
+    nu = (z_base[det] - zhat_base[cand]).reshape(-1)
+    S = _joint_matrix(det, cand, R_z, S_hat, joint_cov)
     try:
         return float(nu @ cho_solve(cho_factor(S, lower=True, check_finite=False), nu, check_finite=False))
     except LinAlgError:
@@ -272,14 +278,7 @@ def _joint_compatible(det, cand, d2, z_base, zhat_base, R_z, S_hat, config, join
     if not det.size:
         return det, cand, 0
     nu = (z_base[det] - zhat_base[cand]).reshape(-1)
-    if joint_cov is not None:
-        S = np.asarray(joint_cov(det, cand), dtype=float)
-    else:
-        k = det.size
-        S = np.zeros((3 * k, 3 * k))
-        for i in range(k):
-            S[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = S_hat[cand[i]] + R_z[det[i]]
-    S = 0.5 * (S + S.T)
+    S = _joint_matrix(det, cand, R_z, S_hat, joint_cov)
     try:  # most frames pass as they are: one Cholesky solve, no inverse
         c = cho_factor(S, lower=True, check_finite=False)
         if float(nu @ cho_solve(c, nu, check_finite=False)) <= _chi2_limit(config.joint_confidence, 3 * det.size):
