@@ -196,6 +196,8 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     if gt is None:
         return out
     out["ate"] = M.ate(res.final, gt).to_dict()
+    planar, height = M.ate_parts(res.final, gt)
+    out["ate_planar"], out["height_error"] = planar.to_dict(), height.to_dict()
     out["ate_se2_aligned"] = M.ate(res.final, gt, align_se2=True).to_dict()
     out["ate_online"] = M.ate(res.online, gt).to_dict()
     out["drift_pct"] = M.drift_pct(res.final, gt)  # final planar error per distance travelled

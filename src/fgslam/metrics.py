@@ -99,6 +99,13 @@ def ate(est: Trajectory, gt: Trajectory, align_se2: bool = False) -> ErrorStats:
     return ErrorStats.of(np.linalg.norm(err, axis=1))
 
 
+def ate_parts(est: Trajectory, gt: Trajectory) -> tuple[ErrorStats, ErrorStats]:
+    """The ATE's two parts: planar (|(x, y) error|, what a fix corrects) and height (|z error|,
+    which planar fixes leave free), each over the estimate's stamps (m)."""
+    err, _ = position_errors(est, gt)
+    return ErrorStats.of(np.linalg.norm(err[:, :2], axis=1)), ErrorStats.of(np.abs(err[:, 2]))
+
+
 def _se3_inv(T: np.ndarray) -> np.ndarray:
     Ti = np.zeros_like(T)
     R = T[..., :3, :3]

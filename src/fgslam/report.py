@@ -60,6 +60,9 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
         lab = run_label(k)
         row(f"{lab} ATE [m]", lambda s, k=k: s["runs"][k]["ate"]["rmse"])
         row(f"{lab} ATE max [m]", lambda s, k=k: s["runs"][k]["ate"]["max"])
+        row(f"{lab} ATE planar / height RMSE [m]",
+            lambda s, k=k: "{:.3f} / {:.3f}".format(s["runs"][k]["ate_planar"]["rmse"],
+                                                   s["runs"][k]["height_error"]["rmse"]), "{}")
         row(f"{lab} RPE/10 m [m]", lambda s, k=k: s["runs"][k]["rpe"]["rmse"])
         row(f"{lab} drift [% of distance]", lambda s, k=k: s["runs"][k]["drift_pct"], "{:.2f}")
         if k.endswith("_reloc"):

@@ -65,6 +65,13 @@ def test_outputs_table_json_plots(tmp_path, compared):
     table = (tmp_path / "table.md").read_text()
     assert table == markdown_table([wc.metrics])
     assert f"| Dead reckoning + reloc ATE [m] | {m['dr_reloc']['ate']['rmse']:.3f} |" in table
+    # the ATE's planar and height parts: their squares sum to the 3D ATE's
+    for run in m.values():
+        if "ate" in run:
+            assert run["ate_planar"]["rmse"] ** 2 + run["height_error"]["rmse"] ** 2 == pytest.approx(
+                run["ate"]["rmse"] ** 2)
+    p, h = m["dr_reloc"]["ate_planar"]["rmse"], m["dr_reloc"]["height_error"]["rmse"]
+    assert f"| Dead reckoning + reloc ATE planar / height RMSE [m] | {p:.3f} / {h:.3f} |" in table
     for png in ("xy", "errors", "fix_errors", "error_vs_distance", "xy_error"):
         assert (tmp_path / f"{wc.inputs.name}_{png}.png").read_bytes()[:4] == b"\x89PNG"
     # drift: the final error over the distance, as the error-against-distance figure states it

@@ -49,6 +49,18 @@ def test_ate_hand_computed_growing_error():
     assert s.median == pytest.approx(1.0)
 
 
+def test_ate_parts_split_plane_and_height():
+    t = np.array([0.0, 1.0, 2.0, 3.0])
+    xy = np.column_stack([t, np.zeros(4)])
+    gt = _traj(t, xy, np.zeros(4), z=np.full(4, 10.0))
+    est = _traj(t, xy + [0.3, 0.4], np.zeros(4), z=10.0 + np.array([0.0, -1.2, 1.2, 0.0]))
+    planar, height = M.ate_parts(est, gt)
+    assert planar.rmse == pytest.approx(0.5) and planar.max == pytest.approx(0.5)
+    assert height.rmse == pytest.approx(np.sqrt(2 * 1.44 / 4)) and height.max == pytest.approx(1.2)
+    # the 3D ATE's squares are the sum of its parts'
+    assert M.ate(est, gt).rmse ** 2 == pytest.approx(planar.rmse ** 2 + height.rmse ** 2)
+
+
 def test_ate_interpolates_truth_at_estimate_stamps():
     gt = _traj(np.array([0.0, 2.0]), np.array([[0.0, 0.0], [2.0, 0.0]]), np.zeros(2))
     est = _traj(np.array([1.0]), np.array([[1.0, 0.5]]), np.zeros(1))
