@@ -203,14 +203,19 @@ def test_batched_fix_residuals_equal_one_by_one(rng):
     assert residual_d2_many([], np.zeros((0, 4, 4))).shape == (0,)
 
 
-def test_calibrated_point_factor_jacobians_match_numerical(rng):
+@pytest.mark.parametrize("c", [
+    [0.002, -0.003, 0.004, 0.003],  # rotation (rad), scale - 1: calibration-sized
+    [0.4, -0.7, 0.2, -0.05],  # far from 0: the closed forms of Exp and its left Jacobian
+    [3e-8, -2e-8, 1e-8, 0.001],  # below 1e-6 rad: their series
+])
+def test_calibrated_point_factor_jacobians_match_numerical(rng, c):
     from gtsam.symbol_shorthand import C
 
     from fgslam.smoother.factors import calibrated_point_residual, make_calibrated_point_factor
 
     T = _random_pose(rng)
     l_world = T[:3, :3] @ np.array([5.0, 1.0, 0.2]) + T[:3, 3]
-    c = np.array([0.002, -0.003, 0.004, 0.003])  # rotation (rad), scale - 1: calibration-sized
+    c = np.array(c)
     z = np.array([5.1, 0.9, 0.25])
     r, Hp, Hl, Hc = calibrated_point_residual(T, l_world, c, z)
     num_p = _numerical_jacobian(lambda Tp: calibrated_point_residual(Tp, l_world, c, z)[0], T)
