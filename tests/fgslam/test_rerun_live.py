@@ -111,13 +111,35 @@ def _saving_viewer(saved: Path):
             time.sleep(0.1)
         yield rerun_log.viewer_url(port)
     finally:
-        # the viewer's own shutdown is not under test (under load it has taken > 30 s)
-        viewer.send_signal(signal.SIGINT)
+        # the viewer's own shutdown is not under test (under load it has taken > 30 s). `rerun` is
+        # a Python launcher whose child is the viewer binary: the signals go to the whole process
+        # group (its own session), or the binary outlives the test, orphaned
+        _signal_group(viewer, signal.SIGINT)
         try:
             viewer.wait(timeout=10)
         except subprocess.TimeoutExpired:
-            viewer.kill()
-            viewer.wait()
+            pass
+        _signal_group(viewer, signal.SIGKILL)
+        viewer.wait()
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether any process of group ``pgid`` is still running (zombies do not count)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended while listed
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            return True
+    return False
+
+
+def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(proc.pid, sig)
+    except ProcessLookupError:  # the whole group has ended
+        pass
 
 
 def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
@@ -195,6 +217,12 @@ def test_serve_starts_a_server_on_localhost_only(synth_dir, tmp_path, capsys):
                 listening.add((ip, int(p, 16)))
         assert ("0100007F", port) in listening and ("00000000", port) not in listening
         assert f"rerun --connect {rerun_log.viewer_url(port)}" in " ".join(err.split())
+        assert f"kill -- -{pid}" in " ".join(err.split())
     finally:
-        os.kill(pid, signal.SIGTERM)
+        os.killpg(pid, signal.SIGTERM)  # as the message says: the launcher and the server binary
+    for _ in range(100):  # the whole group ends (a plain kill of the launcher orphaned the server)
+        if not _group_alive(pid):
+            break
+        time.sleep(0.1)
+    assert not _group_alive(pid)
     assert main(["run", str(synth_dir), "--out", str(tmp_path / "x"), "--spawn", "--serve", "1"]) == 2

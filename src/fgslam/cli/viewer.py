@@ -31,6 +31,8 @@ def live_url(spawn: bool, serve: int | None, connect: str | None, console) -> st
         proc = start_viewer(port, serve_only=not spawn)
         url = viewer_url(port)
         console.print(f"rerun {'viewer' if spawn else 'server'} (pid {proc.pid}) on {url}"
-                      + ("" if spawn else f"; view with: rerun --connect {url}; stop it with: kill {proc.pid}"))
+                      + ("" if spawn else f"; view with: rerun --connect {url}; stop it with: kill -- -{proc.pid}"))
+        # (its process group: `rerun` is a Python launcher whose child is the server binary, and
+        # a plain kill of the launcher leaves the server running)
         return url
     return None
