@@ -17,9 +17,9 @@ import typer
 from fgslam.cli.app import app
 
 DEMO_WORLD = "rocky-1km"
-# on a kilometre preset, when --distance-m is not given. rocky-1km seed 0, 2 cores, unloaded: 250 m
-# in 2 min 46 s to 4 min 38 s (EKF 0.70 m -> 0.16 m with fixes, iSAM2 0.39 -> 0.09, 185 fixes),
-# 300 m in 5-6 min
+# on a kilometre preset, when --distance-m is not given. rocky-1km seed 0, 2 cores, unloaded
+# (2026-12-05): 250 m in 7 min 53 s with the set-up check and the simulation (EKF 0.40 m -> 0.10 m
+# with fixes, iSAM2 0.46 -> 0.06, 185 fixes); README, "What the demo shows"
 DEMO_DISTANCE_M = 250.0
 
 
