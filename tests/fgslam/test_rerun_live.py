@@ -226,3 +226,29 @@ def test_serve_starts_a_server_on_localhost_only(synth_dir, tmp_path, capsys):
         time.sleep(0.1)
     assert not _group_alive(pid)
     assert main(["run", str(synth_dir), "--out", str(tmp_path / "x"), "--spawn", "--serve", "1"]) == 2
+
+
+def _processes_with(arg: str) -> list[int]:
+    """Running processes (not zombies) whose command line holds ``arg`` as one argument."""
+    out = []
+    for d in Path("/proc").glob("[0-9]*"):
+        try:
+            if arg in (d / "cmdline").read_bytes().decode(errors="replace").split("\0"):
+                if (d / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+                    out.append(int(d.name))
+        except OSError:  # ended while listed
+            continue
+    return out
+
+
+def test_a_viewer_that_does_not_listen_in_time_is_stopped_whole():
+    from fgslam.errors import FgslamError
+
+    port = str(_free_port())
+    with pytest.raises(FgslamError, match="did not listen"):
+        rerun_log.start_viewer(int(port), serve_only=True, timeout_s=1e-6)
+    for _ in range(100):  # the launcher and the binary it started both end
+        if not _processes_with(port):
+            break
+        time.sleep(0.1)
+    assert _processes_with(port) == []

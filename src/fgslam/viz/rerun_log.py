@@ -395,7 +395,13 @@ def start_viewer(port: int, serve_only: bool = False, timeout_s: float = 20.0):
             if sock.connect_ex((LOCALHOST, int(port))) == 0:
                 return proc
         time.sleep(0.1)
-    proc.terminate()
+    import os
+    import signal
+
+    try:  # the group: `rerun` is a Python launcher, its child the viewer binary (own session)
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
     raise FgslamError(f"rerun did not listen on {LOCALHOST}:{port} within {timeout_s:g} s")
 
 
