@@ -114,32 +114,37 @@ def _saving_viewer(saved: Path):
         # the viewer's own shutdown is not under test (under load it has taken > 30 s). `rerun` is
         # a Python launcher whose child is the viewer binary: the signals go to the whole process
         # group (its own session), or the binary outlives the test, orphaned
-        _signal_group(viewer, signal.SIGINT)
+        rerun_log.signal_viewer(viewer.pid, signal.SIGINT)
         try:
             viewer.wait(timeout=10)
         except subprocess.TimeoutExpired:
             pass
-        _signal_group(viewer, signal.SIGKILL)
+        rerun_log.signal_viewer(viewer.pid, signal.SIGKILL)
         viewer.wait()
 
 
-def _group_alive(pgid: int) -> bool:
-    """Whether any process of group ``pgid`` is still running (zombies do not count)."""
-    for stat in Path("/proc").glob("[0-9]*/stat"):
+def _running() -> list[tuple[int, int, list[str]]]:
+    """(pid, process group, command line) of every running process (zombies left out), from /proc."""
+    out = []
+    for d in Path("/proc").glob("[0-9]*"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
+            state, _, pgid = (d / "stat").read_text().rsplit(")", 1)[1].split()[:3]
+            cmdline = (d / "cmdline").read_bytes().decode(errors="replace").split("\0")
         except OSError:  # ended while listed
             continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            return True
-    return False
+        if state != "Z":
+            out.append((int(d.name), int(pgid), cmdline))
+    return out
 
 
-def _signal_group(proc: subprocess.Popen, sig: int) -> None:
-    try:
-        os.killpg(proc.pid, sig)
-    except ProcessLookupError:  # the whole group has ended
-        pass
+def _ends(alive, timeout_s: float = 10.0) -> bool:
+    """Whether ``alive()`` turns false within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while alive():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
 
 
 def test_a_run_streams_to_a_viewer_it_connects_to(synth_dir, tmp_path):
@@ -220,25 +225,9 @@ def test_serve_starts_a_server_on_localhost_only(synth_dir, tmp_path, capsys):
         assert f"kill -- -{pid}" in " ".join(err.split())
     finally:
         os.killpg(pid, signal.SIGTERM)  # as the message says: the launcher and the server binary
-    for _ in range(100):  # the whole group ends (a plain kill of the launcher orphaned the server)
-        if not _group_alive(pid):
-            break
-        time.sleep(0.1)
-    assert not _group_alive(pid)
+    # the whole group ends (a plain kill of the launcher orphaned the server)
+    assert _ends(lambda: any(g == pid for _, g, _ in _running()))
     assert main(["run", str(synth_dir), "--out", str(tmp_path / "x"), "--spawn", "--serve", "1"]) == 2
-
-
-def _processes_with(arg: str) -> list[int]:
-    """Running processes (not zombies) whose command line holds ``arg`` as one argument."""
-    out = []
-    for d in Path("/proc").glob("[0-9]*"):
-        try:
-            if arg in (d / "cmdline").read_bytes().decode(errors="replace").split("\0"):
-                if (d / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
-                    out.append(int(d.name))
-        except OSError:  # ended while listed
-            continue
-    return out
 
 
 def test_a_viewer_that_does_not_listen_in_time_is_stopped_whole():
@@ -247,8 +236,5 @@ def test_a_viewer_that_does_not_listen_in_time_is_stopped_whole():
     port = str(_free_port())
     with pytest.raises(FgslamError, match="did not listen"):
         rerun_log.start_viewer(int(port), serve_only=True, timeout_s=1e-6)
-    for _ in range(100):  # the launcher and the binary it started both end
-        if not _processes_with(port):
-            break
-        time.sleep(0.1)
-    assert _processes_with(port) == []
+    # the launcher and the binary it started (found by their port argument) both end
+    assert _ends(lambda: any(port in cmd for _, _, cmd in _running()))

@@ -395,14 +395,22 @@ def start_viewer(port: int, serve_only: bool = False, timeout_s: float = 20.0):
             if sock.connect_ex((LOCALHOST, int(port))) == 0:
                 return proc
         time.sleep(0.1)
+    signal_viewer(proc.pid)
+    raise FgslamError(f"rerun did not listen on {LOCALHOST}:{port} within {timeout_s:g} s")
+
+
+def signal_viewer(pid: int, sig: int | None = None) -> None:
+    """Send ``sig`` (default SIGTERM) to a viewer started by :func:`start_viewer`, whose ``pid`` is
+    that of its own process group: ``rerun`` is a Python launcher whose child is the viewer
+    binary, and a signal to the launcher alone leaves the binary running, orphaned. A group that
+    has ended already is no error."""
     import os
     import signal
 
-    try:  # the group: `rerun` is a Python launcher, its child the viewer binary (own session)
-        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        os.killpg(pid, signal.SIGTERM if sig is None else sig)
     except ProcessLookupError:
         pass
-    raise FgslamError(f"rerun did not listen on {LOCALHOST}:{port} within {timeout_s:g} s")
 
 
 def stream_rrd(url: str, items: list[tuple[str, object, object, dict, list]], recording_id: str | None = None) -> str:
