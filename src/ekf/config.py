@@ -54,6 +54,9 @@ class FixGateConfig:
     distance_m: Positive = 3.0  # |fix xy - estimate xy at t_meas| above this -> rejected
     yaw_deg: Annotated[float, Interval(gt=0, le=180)] = 15.0  # |fix yaw - estimate yaw| above this -> rejected
     chi2: Positive = 16.27  # squared Mahalanobis distance (3 dof, 99.9 %) above this -> rejected
+    # a fix's height (fgslam.terrain_height): its squared Mahalanobis distance (1 dof, 99.9 %) above
+    # this -> the fix is applied without it (the planar part gated as above)
+    height_chi2: Positive = 10.83
     # Fixes come from matching a map against one catalog, so their errors are correlated in
     # time. The fix source models that for both back-ends alike (RelocalizerConfig.correlation
     # scales each fix's covariance); this is a second, EKF-only model on top of it: a fix's

@@ -111,6 +111,8 @@ class EkfSlam(Backend):
                        "n_late_fixes": 0, "n_replayed_entries": 0, "n_attitude_updates": 0}
         self._reject_reasons: dict[str, int] = {}
         self._count["n_consensus_resets"] = 0
+        self._count["n_heights_refused"] = 0  # fixes applied without their height (FixGateConfig.height_chi2)
+        self._applied: GlobalFix | None = None  # the last fix as _gate_and_apply applied it
         self._count["n_first_estimate_resets"] = 0  # pose corrections beyond first_estimate_tol_m
         self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
         self._reset_Q: dict[tuple, np.ndarray] = {}  # inflation applied with each consensus fix (for replays)
@@ -160,7 +162,7 @@ class EkfSlam(Backend):
         if fix.t_meas >= s.t_input:
             outcome = self._gate_and_apply(fix)
             if outcome.accepted:
-                self._hist.log.append(Entry("fix", fix.t_meas, fix))
+                self._hist.log.append(Entry("fix", fix.t_meas, self._applied))
             return self._counted(outcome)
         if fix.t_meas < s.t_input - self.config.history_s or fix.t_meas < self._hist.t_start:
             return self._rejected(
@@ -323,23 +325,35 @@ class EkfSlam(Backend):
         return report
 
     def _gate_and_apply(self, fix: GlobalFix, force: bool = False) -> FixOutcome:
+        """Gate ``fix`` (not when ``force``: a replay of an applied one) and apply it; the fix as
+        applied (without its height when that was refused) is left in ``self._applied``."""
         s, gate = self._s, self.config.fix_gate
-        h, H = fix_model(s.p_world, s.R_world_base)
-        nu = fix_residual(fix.xyyaw, h)
+        applied = fix
+        if fix.height is not None and not force:
+            h, H = fix_model(s.p_world, s.R_world_base, height=True)
+            nu_z = fix.height.z_m - h[3]
+            S_z = float(H[3] @ s.P[:POSE_DIM, :POSE_DIM] @ H[3]) + fix.height.var_m2
+            if not nu_z * nu_z / S_z <= gate.height_chi2:
+                log.info("t_meas=%.1f s: the fix's height refused (innovation %.2f m, d2 %.1f > %.2f); planar part gated",
+                         fix.t_meas, nu_z, nu_z * nu_z / S_z, gate.height_chi2)
+                applied = fix.planar()
+        self._applied = applied
+        h, H = fix_model(s.p_world, s.R_world_base, height=applied.height is not None)
+        nu = fix_residual(applied.measured, h)
         n_recent = sum(1 for t in s.fix_times if fix.t_meas - gate.correlation_s <= t <= fix.t_meas)
-        R_fix = fix.cov_xyyaw * (1.0 + n_recent) if gate.correlation_s > 0 else fix.cov_xyyaw
+        R_fix = applied.cov * (1.0 + n_recent) if gate.correlation_s > 0 else applied.cov
         dist = math.hypot(nu[0], nu[1])
         if not force and dist > gate.distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {gate.distance_m:.2f} m")
         if not force and abs(math.degrees(nu[2])) > gate.yaw_deg:
             return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
-        S = H @ s.P[:POSE_DIM, :POSE_DIM] @ H.T + R_fix
-        d2 = float(nu @ np.linalg.solve(S, nu))
+        S = H[:3] @ s.P[:POSE_DIM, :POSE_DIM] @ H[:3].T + R_fix[:3, :3]
+        d2 = float(nu[:3] @ np.linalg.solve(S, nu[:3]))  # the planar part: the height was gated above
         key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
         if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again
             s.P[:POSE_DIM, :POSE_DIM] += self._reset_Q[key]
         elif not force and not d2 <= gate.chi2:
-            if not self._consensus(fix.t_meas, nu):
+            if not self._consensus(fix.t_meas, nu[:3]):
                 return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {gate.chi2:.2f}", d2)
             # the rejected fixes agree with each other: open the pose covariance by the innovation
             log.info("t_meas=%.1f s: %d consistent fixes rejected, pose covariance inflated by the innovation "
@@ -355,6 +369,8 @@ class EkfSlam(Backend):
         horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
         s.fix_times = tuple(t for t in s.fix_times if t >= horizon) + (fix.t_meas,)
         self._record()
+        if applied is not fix:
+            self._count["n_heights_refused"] += 1
         return FixOutcome(fix, True, "", d2)
 
     def _consensus(self, t_meas: float, nu: np.ndarray) -> bool:
@@ -396,7 +412,7 @@ class EkfSlam(Backend):
                 self._traj.truncate(ckpt.n_trajectory)
                 self._traj.extend(saved[2])
                 return outcome
-            self._hist.log.append(Entry("fix", fix.t_meas, fix))
+            self._hist.log.append(Entry("fix", fix.t_meas, self._applied))
             self._replay(after)
         finally:
             self._replaying = False

@@ -97,20 +97,23 @@ def _strict_upper(b: int) -> np.ndarray:
     return m
 
 
-def fix_model(p_world: np.ndarray, R_world_base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Planar fix prediction ``h = (x, y, yaw)`` (3,) and its Jacobian (3, 6) w.r.t. ``[dp, dtheta]``."""
-    h = np.array([p_world[0], p_world[1], yaw_of(R_world_base)])
+def fix_model(p_world: np.ndarray, R_world_base: np.ndarray, height: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Fix prediction ``h = (x, y, yaw)`` (3,), or ``(x, y, yaw, z)`` (4,) with ``height``, and its
+    Jacobian (3 or 4, 6) w.r.t. ``[dp, dtheta]``."""
+    h = np.array([p_world[0], p_world[1], yaw_of(R_world_base)] + ([p_world[2]] if height else []))
     r = R_world_base[:, 0]
     n2 = r[0] * r[0] + r[1] * r[1]
     dyaw_dr = np.array([-r[1], r[0], 0.0]) / n2
-    H = np.zeros((3, 6))
+    H = np.zeros((len(h), 6))
     H[0, 0] = H[1, 1] = 1.0
     H[2, 3:] = dyaw_dr @ (-skew(r))  # x axis of Exp(dtheta) R is r + dtheta x r
+    if height:
+        H[3, 2] = 1.0
     return h, H
 
 
 def fix_residual(z_xyyaw: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Fix innovation (3,) with the yaw difference wrapped to [-pi, pi)."""
+    """Fix innovation (3,) or (4,) with the yaw difference wrapped to [-pi, pi)."""
     nu = np.asarray(z_xyyaw, dtype=float) - h
     nu[2] = wrap_angle(float(nu[2]))
     return nu

@@ -84,7 +84,7 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
         "backend_config": backend_config_dict(be),
         "kind_relocalizers": {"+".join(r.kinds): config_to_dict(r.config) for r in relocs if r.kinds != ("rocks",)},
         "topics": dict(topics if topics is not None else cfg.topics), "images": config_to_dict(cfg.images),
-        "rpe_delta_m": cfg.rpe_delta_m,
+        "rpe_delta_m": cfg.rpe_delta_m, "terrain_height": config_to_dict(cfg.terrain_height),
     }
     return RunOutcome(key, res, gt, met, used, [])
 

@@ -21,6 +21,7 @@ import numpy as np
 from fgslam import metrics as M
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
+from fgslam.terrain_height import TerrainHeightConfig, with_heights
 from fgslam.inputs import RunInputs
 from fgslam.io.image_rocks import ImageInputConfig
 from fgslam.long_traverse import (
@@ -79,6 +80,8 @@ class CompareConfig:
     # (fgslam.inputs.start_drawn_from_prior): a Monte Carlo consistency test. False: the start as
     # read (a simulator's is the exact truth, claiming 1 cm and 0.002 rad it does not have)
     draw_start: bool = False
+    # heights from the inputs' orbital terrain model on the fixes (fgslam.terrain_height)
+    terrain_height: TerrainHeightConfig = field(default_factory=TerrainHeightConfig)
 
     def __post_init__(self) -> None:
         from fgslam.backends.registry import BACKEND_NAMES, backend_config
@@ -175,6 +178,8 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         np.array([f.t_meas for f in fixes]), np.array([f.t_recv for f in fixes]), acc, gt, res.duration_s,
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
+    out["fixes"]["heights"] = M.fix_height_stats(fixes, gt)  # fixes with a height from the DEM
+    out["fixes"]["heights"]["refused"] = int(res.stats.extra.get("n_heights_refused", 0))
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
     out["fixes"]["attempts_by_status"] = attempts_by_status(attempts)
     first = next((o.fix for o in res.outcomes if o.accepted), None)  # time to first fix: measured, received
@@ -211,11 +216,12 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
 
 def relocalizer_set(inputs: RunInputs, cfg: CompareConfig) -> list[FixProducer]:
     """The relocalizers of a run: one per catalog of ``inputs``, rocks with ``cfg.relocalizer``,
-    the other kinds with ``cfg.kind_relocalizers[name]``."""
+    the other kinds with ``cfg.kind_relocalizers[name]``; their fixes carry heights where the
+    inputs have a terrain model (``cfg.terrain_height``)."""
     configs = dict(cfg.kind_relocalizers)
     if "rocks" in inputs.catalogs:
         configs["rocks"] = cfg.relocalizer
-    return relocalizers_for(inputs.catalogs, configs)
+    return with_heights(relocalizers_for(inputs.catalogs, configs), inputs.dem, cfg.terrain_height)
 
 
 @dataclass

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from fgslam.errors import InputFileError
 from reloc.backend import PoseEstimate, Trajectory, known_start_cov
+from reloc.dem import Dem
 from reloc.errors import RelocError
 from reloc.kinds import UnknownKindError, kind_named, kinds_with
 from reloc.measurements import CmdVel, GroundTruthPose, ImuSample, WheelOdometry
@@ -33,7 +34,8 @@ class RunInputs:
     :class:`fgslam.io.bag_reader.BagSource` read anew at every pass), ``catalogs`` (landmark kind
     name -> its orbital catalog, e.g. ``{"rocks": RockCatalog}``), ``initial`` pose, optional
     ``orbital_image`` (H, W, 3) uint8 with ``orbital_extent`` (xmin, xmax, ymin, ymax) metres in world
-    (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), and ``source`` (what it was read from)."""
+    (row 0 at ymax), optional ``rocks_true_xy`` (M, 2), ``source`` (what it was read from), and an
+    optional orbital terrain model ``dem``."""
 
     name: str
     measurements: Iterable
@@ -43,6 +45,7 @@ class RunInputs:
     orbital_extent: tuple[float, float, float, float] | None = None
     rocks_true_xy: np.ndarray | None = None
     source: dict = field(default_factory=dict)
+    dem: Dem | None = None  # an orbital terrain model: fixes get heights from it (fgslam.terrain_height)
 
     def __post_init__(self) -> None:
         try:
@@ -201,8 +204,9 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
 def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None, images=None,
                  image_progress=None) -> RunInputs:
     """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
-    rocks_true.csv, and the catalog file of every other landmark kind present (its catalog layer);
-    refused when its manifest says it was not completely written. ``topics``: as :func:`load_bag`."""
+    rocks_true.csv, dem.tif, and the catalog file of every other landmark kind present (its catalog
+    layer); refused when its manifest says it was not completely written. ``topics``: as
+    :func:`load_bag`."""
     import yaml
 
     from fgslam.io.outdir import require_complete
@@ -237,6 +241,20 @@ def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None, images
     if isinstance(world_yaml, dict):
         inputs.source.update({k: world_yaml[k] for k in ("world", "seed") if k in world_yaml and not isinstance(world_yaml[k], dict)})
     inputs.source["dir"] = str(path)
+    if (path / DEM_FILE).exists():
+        with_dem(inputs, path / DEM_FILE)
+    return inputs
+
+
+DEM_FILE = "dem.tif"  # a simulation's orbital terrain model
+
+
+def with_dem(inputs: RunInputs, path: Path) -> RunInputs:
+    """``inputs`` (changed in place) with the terrain model of the GeoTIFF ``path``."""
+    from fgslam.io.dem_tif import read_dem
+
+    inputs.dem = read_dem(path)
+    inputs.source["dem"] = str(path)
     return inputs
 
 

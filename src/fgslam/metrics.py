@@ -9,6 +9,7 @@ position error in the world frame *without* alignment (the start pose is known),
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -286,6 +287,21 @@ def fix_errors(fixes_xyyaw: np.ndarray, t_meas: np.ndarray, gt: Trajectory) -> t
     pos = np.linalg.norm(fixes_xyyaw[:, :2] - p_gt[:, :2], axis=1)
     yaw = wrap_angle(fixes_xyyaw[:, 2] - yaw_gt)
     return pos, yaw
+
+
+def fix_height_stats(fixes: Sequence, gt: Trajectory | None) -> dict:
+    """The fixes that carry a height (:class:`reloc.measurements.FixHeight`): how many, and with
+    truth the RMSE of their z against the truth's at ``t_meas`` and their mean NEES (1 dof)."""
+    hs = [f for f in fixes if f.height is not None]
+    out: dict = {"n": len(hs)}
+    if not hs or gt is None:
+        return out
+    p_gt, _, _ = interpolate_truth(gt, np.array([f.t_meas for f in hs]))
+    e = np.array([f.height.z_m for f in hs]) - p_gt[:, 2]
+    var = np.array([f.height.var_m2 for f in hs])
+    out.update({"error_rmse_m": float(np.sqrt(np.mean(e**2))), "error_mean_m": float(np.mean(e)),
+                "nees": float(np.mean(e**2 / var)), "sigma_median_m": float(np.median(np.sqrt(var)))})
+    return out
 
 
 def fix_stats(

@@ -19,6 +19,7 @@ from reloc.backend import Trajectory
 FIX_COLUMNS = [
     "t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "var_x", "var_y", "var_yaw", "cov_xy", "cov_xyaw", "cov_yyaw",
     "n_inliers", "rmse_m", "accepted", "reason", "error_position_m", "error_yaw_rad",
+    "z_m", "var_z", "error_z_m",  # the fix's height from the DEM (empty without one)
 ]
 
 
@@ -28,13 +29,16 @@ def write_fixes_csv(path: Path, run: RunResult, gt: Trajectory | None) -> Path:
     rows = []
     outs = run.outcomes
     if outs and gt is not None:
-        pos, yaw = M.fix_errors(np.array([o.fix.xyyaw for o in outs]), np.array([o.fix.t_meas for o in outs]), gt)
+        t = np.array([o.fix.t_meas for o in outs])
+        pos, yaw = M.fix_errors(np.array([o.fix.xyyaw for o in outs]), t, gt)
+        z_true = M.interpolate_truth(gt, t)[0][:, 2]
     else:
-        pos = yaw = np.full(len(outs), np.nan)
-    for o, ep, ey in zip(outs, pos, yaw):
-        f, C = o.fix, o.fix.cov_xyyaw
+        pos = yaw = z_true = np.full(len(outs), np.nan)
+    for o, ep, ey, zt in zip(outs, pos, yaw, z_true):
+        f, C, h = o.fix, o.fix.cov_xyyaw, o.fix.height
+        height = ["", "", ""] if h is None else [h.z_m, h.var_m2, h.z_m - zt]
         rows.append([f.t_meas, f.t_recv, f.x_m, f.y_m, f.yaw_rad, C[0, 0], C[1, 1], C[2, 2], C[0, 1], C[0, 2], C[1, 2],
-                     f.n_inliers, f.rmse_m, int(o.accepted), o.reason, ep, ey])
+                     f.n_inliers, f.rmse_m, int(o.accepted), o.reason, ep, ey, *height])
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(FIX_COLUMNS)

@@ -9,7 +9,7 @@ wrong shape never reaches a filter.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Union
 
 import numpy as np
@@ -177,11 +177,31 @@ def sort_key(m: Measurement) -> tuple[float, int]:
 
 
 @dataclass(frozen=True, slots=True)
+class FixHeight:
+    """The height of base_link at a fix, read from an orbital terrain model at the fix's (x, y):
+    ``z_m`` (world), ``var_m2`` its variance (the model's own error and the fix's planar error
+    through the terrain's slope), ``cov_xyyaw`` (3,) its covariance with the fix's (x, y, yaw)."""
+
+    z_m: float
+    var_m2: float
+    cov_xyyaw: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "z_m", _time("FixHeight.z_m", self.z_m))
+        object.__setattr__(self, "var_m2", _time("FixHeight.var_m2", self.var_m2))
+        if not self.var_m2 > 0.0:
+            raise MeasurementError(f"FixHeight.var_m2 must be positive, got {self.var_m2}")
+        object.__setattr__(self, "cov_xyyaw", _array("FixHeight.cov_xyyaw", np.reshape(self.cov_xyyaw, -1), (3,)))
+
+
+@dataclass(frozen=True, slots=True)
 class GlobalFix:
-    """A planar global pose fix of base_link in world, valid at ``t_meas``, delivered at ``t_recv``.
+    """A global pose fix of base_link in world, valid at ``t_meas``, delivered at ``t_recv``:
+    planar (x, y, yaw), and with ``height`` (:class:`FixHeight`) also z.
 
     ``cov_xyyaw`` (3, 3): covariance of (x_m, y_m, yaw_rad). ``n_inliers``/``rmse_m`` describe the
-    constellation match that produced it.
+    constellation match that produced it. ``measured`` / ``cov`` are the fix as one vector
+    (x, y, yaw[, z]) with its (3, 3) or (4, 4) covariance, the form the back-ends update with.
     """
 
     t_meas: float
@@ -192,6 +212,7 @@ class GlobalFix:
     cov_xyyaw: np.ndarray
     n_inliers: int = 0
     rmse_m: float = 0.0
+    height: FixHeight | None = None
 
     def __post_init__(self) -> None:
         for name in ("t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "rmse_m"):
@@ -205,11 +226,38 @@ class GlobalFix:
             raise MeasurementError("GlobalFix.cov_xyyaw must be symmetric positive definite")
         object.__setattr__(self, "cov_xyyaw", cov)
         object.__setattr__(self, "n_inliers", int(self.n_inliers))
+        if self.height is not None:
+            if not isinstance(self.height, FixHeight):
+                raise MeasurementError(f"GlobalFix.height must be a FixHeight or None, got {type(self.height).__name__}")
+            if np.linalg.eigvalsh(self.cov)[0] <= 0:
+                raise MeasurementError("GlobalFix.height: the (x, y, yaw, z) covariance is not positive definite")
 
     @property
     def xyyaw(self) -> np.ndarray:
         """(3,) array (x_m, y_m, yaw_rad)."""
         return np.array([self.x_m, self.y_m, self.yaw_rad])
+
+    @property
+    def measured(self) -> np.ndarray:
+        """(3,) (x, y, yaw), or (4,) (x, y, yaw, z) with a height."""
+        if self.height is None:
+            return self.xyyaw
+        return np.array([self.x_m, self.y_m, self.yaw_rad, self.height.z_m])
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Covariance of :attr:`measured`: (3, 3), or (4, 4) with a height."""
+        if self.height is None:
+            return self.cov_xyyaw.copy()
+        C = np.empty((4, 4))
+        C[:3, :3] = self.cov_xyyaw
+        C[3, :3] = C[:3, 3] = self.height.cov_xyyaw
+        C[3, 3] = self.height.var_m2
+        return C
+
+    def planar(self) -> GlobalFix:
+        """This fix without its height."""
+        return self if self.height is None else replace(self, height=None)
 
 
 @dataclass(frozen=True, slots=True)

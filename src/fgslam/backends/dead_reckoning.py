@@ -153,7 +153,8 @@ class DeadReckoning(Backend):
         return max(i, 0), self._hist_T[max(i, 0)]
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
-        """Ignored unless ``use_fixes``; then shift the current pose and map by the planar correction."""
+        """Ignored unless ``use_fixes``; then shift the current pose and map by the planar correction
+        (and the height's, for a fix with one)."""
         if not self.config.use_fixes:
             self._stats["n_fixes_rejected"] += 1
             return FixOutcome(fix, accepted=False, reason="dead reckoning ignores fixes")
@@ -169,18 +170,20 @@ class DeadReckoning(Backend):
         dyaw = fix.yaw_rad - yaw_old
         c, s = np.cos(dyaw), np.sin(dyaw)
         R2 = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        t2 = np.array([fix.x_m, fix.y_m, 0.0]) - R2 @ np.array([T_old[0, 3], T_old[1, 3], 0.0])
+        dz = 0.0 if fix.height is None else fix.height.z_m - T_old[2, 3]  # a height moves z as well
+        t2 = np.array([fix.x_m, fix.y_m, dz]) - R2 @ np.array([T_old[0, 3], T_old[1, 3], 0.0])
         self._T[:3, :3] = R2 @ self._T[:3, :3]
-        self._T[:2, 3] = (R2 @ self._T[:3, 3] + t2)[:2]
+        self._T[:3, 3] = R2 @ self._T[:3, 3] + t2
         for lm in self._maps.values():
             if len(lm.xyz):
-                lm.xyz[:, :2] = (lm.xyz @ R2.T + t2)[:, :2]
-        idx = [0, 1, 5]
-        for a in range(3):
-            for b in range(3):
-                self._P[idx[a], idx[b]] = fix.cov_xyyaw[a, b]
+                lm.xyz[:] = lm.xyz @ R2.T + t2
+        idx = [0, 1, 5] if fix.height is None else [0, 1, 5, 2]  # the fix's (x, y, yaw[, z]) in [p, theta]
+        C = fix.cov
+        for a in range(len(idx)):
+            for b in range(len(idx)):
+                self._P[idx[a], idx[b]] = C[a, b]
         for a in idx:
-            for b in (2, 3, 4):
+            for b in {2, 3, 4} - set(idx):
                 self._P[a, b] = self._P[b, a] = 0.0
         self._stats["n_fixes_accepted"] += 1
         return FixOutcome(fix, accepted=True)

@@ -164,6 +164,7 @@ def run_cmd(
     rrd: Path | None = typer.Option(None, "--rrd", help="Also write a rerun recording to this file."),
     bag: Path | None = typer.Option(None, "--bag", help="A ROS 2 bag (instead of DIR)."),
     catalog: Path | None = typer.Option(None, "--catalog", help="Orbital catalog CSV x,y,size,score (with --bag)."),
+    dem: Path | None = typer.Option(None, "--dem", help="Orbital terrain model (GeoTIFF, world frame) whose heights the fixes carry; a DIR's dem.tif by default."),
     start: str | None = typer.Option(None, "--start", help="Start pose X,Y,YAW or X,Y,Z,YAW (m, rad) instead of the first ground truth; roll and pitch come from the IMU."),
     start_sigma: str | None = typer.Option(None, "--start-sigma", help="Start pose 1-sigma XY,YAW or XY,Z,YAW (m, rad) [default: 0.01 m, 0.002 rad]."),
     config: Path | None = typer.Option(None, "--config", help="YAML overrides (runner, relocalizer, backend_overrides, topics)."),
@@ -180,7 +181,7 @@ def run_cmd(
     from fgslam.api import run_one
     from fgslam.cli.progress import stream_progress
     from fgslam.cli.viewer import live_url
-    from fgslam.inputs import bag_topics
+    from fgslam.inputs import bag_topics, with_dem
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
 
@@ -195,6 +196,8 @@ def run_cmd(
         if rrd is not None and rrd_staged is None:
             check_output_path(rrd, "--rrd", directory=False)
         inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics), cfg.images, console)
+        if dem is not None:
+            with_dem(inputs, dem)
         live_run = None
         if live is not None:  # pose by pose while the run goes (fgslam.viz.rerun_log.LiveRun)
             from fgslam.viz.rerun_log import LiveRun

@@ -117,6 +117,9 @@ class FixConfig:
     """Late global (x, y, yaw) fixes: gate, robust kernel, retraction, history."""
 
     gate_chi2: Positive = 30.0  # Mahalanobis gate on the innovation (3 dof)
+    # a fix's height (fgslam.terrain_height): squared Mahalanobis distance (1 dof, 99.9 %) above this
+    # -> the fix is placed without it
+    height_gate_chi2: Positive = 10.83
     gate_distance_m: Positive = 25.0  # hard gate on the position innovation
     cauchy_k: Positive = 2.0  # Cauchy kernel scale on the whitened residual
     retract_chi2: Positive = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)

@@ -54,19 +54,25 @@ def inverse(T: np.ndarray) -> np.ndarray:
 
 def se2_residual(T_world_base: np.ndarray, xyyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Residual (3,) [x - x_fix, y - y_fix, wrap(yaw - yaw_fix)] of a Pose3 against a planar fix,
-    and its (3, 6) Jacobian w.r.t. the pose's right perturbation [omega, v].
+    and its (3, 6) Jacobian w.r.t. the pose's right perturbation [omega, v]; with a fix height
+    (``xyyaw`` of 4: x, y, yaw, z) also z - z_fix, (4,) and (4, 6).
 
     yaw is the heading of base_link's x axis projected on the world xy plane, so the residual is
-    exact on sloped ground (roll/pitch and z are left free, unlike a Pose3 prior with huge sigmas).
+    exact on sloped ground (roll/pitch, and z without a height, are left free, unlike a Pose3
+    prior with huge sigmas).
     """
     R, p = T_world_base[:3, :3], T_world_base[:3, 3]
     a = R[:, 0]
     n2 = a[0] ** 2 + a[1] ** 2
-    r = np.array([p[0] - xyyaw[0], p[1] - xyyaw[1], wrap_angle(float(np.arctan2(a[1], a[0]) - xyyaw[2]))])
-    H = np.zeros((3, 6))
+    n = len(xyyaw)
+    r = np.array([p[0] - xyyaw[0], p[1] - xyyaw[1], wrap_angle(float(np.arctan2(a[1], a[0]) - xyyaw[2]))]
+                 + ([p[2] - xyyaw[3]] if n == 4 else []))
+    H = np.zeros((n, 6))
     H[:2, 3:] = R[:2, :]  # dp = R dv
     M = -R @ skew(np.array([1.0, 0.0, 0.0]))  # da = R [omega]x e1 = -R [e1]x omega
     H[2, :3] = (a[0] * M[1] - a[1] * M[0]) / n2
+    if n == 4:
+        H[3, 3:] = R[2, :]
     return r, H
 
 
@@ -74,7 +80,8 @@ def fix_residual(
     T_world_kf: np.ndarray, T_kf_meas: np.ndarray, xyyaw: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residual (3,) of the pose ``T_world_kf @ T_kf_meas`` (keyframe pose composed with the
-    odometry to the fix time) against a planar fix, and its (3, 6) Jacobian w.r.t. the keyframe."""
+    odometry to the fix time) against a planar fix, and its (3, 6) Jacobian w.r.t. the keyframe
+    ((4,) and (4, 6) against a fix with a height, :func:`se2_residual`)."""
     r, H_meas = se2_residual(T_world_kf @ T_kf_meas, xyyaw)
     # T_kf Exp(xi) T_rel = T_kf T_rel Exp(Ad(T_rel^-1) xi)
     return r, H_meas @ adjoint(inverse(T_kf_meas))
@@ -84,8 +91,9 @@ def fix_covariance(
     T_world_meas: np.ndarray, cov_rel_body: np.ndarray, cov_xyyaw: np.ndarray
 ) -> np.ndarray:
     """(3, 3) covariance of the fix residual: the fix's own plus the odometry's from the keyframe
-    to the fix time (``cov_rel_body`` (6, 6), GTSAM body frame at the fix time)."""
-    _, H = se2_residual(T_world_meas, np.zeros(3))
+    to the fix time (``cov_rel_body`` (6, 6), GTSAM body frame at the fix time); (4, 4) for a fix
+    with a height (``cov_xyyaw`` (4, 4))."""
+    _, H = se2_residual(T_world_meas, np.zeros(len(cov_xyyaw)))
     return cov_xyyaw + H @ cov_rel_body @ H.T
 
 
@@ -93,7 +101,8 @@ def make_fix_factor(
     key: int, T_kf_meas: np.ndarray, xyyaw: np.ndarray, cov: np.ndarray, cauchy_k: float
 ) -> gtsam.CustomFactor:
     """CustomFactor on Pose3 ``key``: exact (x, y, yaw) residual at ``T_kf_meas`` (4, 4) after the
-    keyframe, covariance ``cov`` (3, 3), under a Cauchy kernel of scale ``cauchy_k``."""
+    keyframe, covariance ``cov`` (3, 3), under a Cauchy kernel of scale ``cauchy_k``; (x, y, yaw, z)
+    with ``xyyaw`` of 4 and ``cov`` (4, 4)."""
     T_rel = np.array(T_kf_meas, dtype=float)
     target = np.array(xyyaw, dtype=float)
     base = gtsam.noiseModel.Gaussian.Covariance(np.array(cov, dtype=float))

@@ -50,7 +50,14 @@ class LateFixes:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
             cov_kf = cov_world_to_gtsam(T_kf[:3, :3], self.kfs.online_cov(k))
-        d2, dist = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res)
+        inn = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res)
+        applied = fix  # without its height when that is refused; the outcome names the fix as given
+        if inn.height_d2 is not None and not inn.height_d2 <= cfg.height_gate_chi2:
+            log.info("fix at t=%.2f: its height refused (d2 %.1f > %.1f); planar part gated", fix.t_meas,
+                     inn.height_d2, cfg.height_gate_chi2)
+            applied = fix.planar()
+            factor, cov_res = place_fix(applied, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor)
+        d2, dist = inn.d2, inn.distance_m
         if dist > cfg.gate_distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
         if d2 > cfg.gate_chi2:
@@ -66,7 +73,8 @@ class LateFixes:
             self.solver.restore(snap, alive)
             self.n_failed_updates += 1
             return FixOutcome(fix, False, f"solver update failed: {exc}", d2)
-        rec = FixRecord(fix, k, X(k), T_rel, cov_res, idx[0])
+        rec = FixRecord(applied, k, X(k), T_rel, cov_res, idx[0])
+        self.n_heights_refused += applied is not fix
         self.fixes.append(rec)
         self._retract_outliers()
         self._refresh_latest()

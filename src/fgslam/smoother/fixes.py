@@ -14,8 +14,9 @@ from reloc.measurements import GlobalFix
 
 @dataclass
 class FixRecord:
-    """An applied fix: its factor index in the solver, keyframe, relative motion from the keyframe
-    to ``t_meas`` (4, 4) and residual covariance (3, 3)."""
+    """An applied fix (as applied: without its height when that was refused): its factor index in
+    the solver, keyframe, relative motion from the keyframe to ``t_meas`` (4, 4) and residual
+    covariance (3, 3), or (4, 4) with a height."""
 
     fix: GlobalFix
     kf: int
@@ -43,32 +44,52 @@ def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarr
     Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([[ce, se, 0.0], [-se, ce, 0.0], [0.0, 0.0, 1.0]])
     T_proj = np.eye(4)
     T_proj[:3, :3] = Rz @ T[:3, :3]
-    cov_fix = np.array(fix.cov_xyyaw, dtype=float)
+    cov_fix = fix.cov
     if cov_fix[2, 2] < yaw_sigma_floor_rad**2:  # raise the yaw sigma, keep the correlation coefficients
-        D = np.diag([1.0, 1.0, yaw_sigma_floor_rad / np.sqrt(cov_fix[2, 2])])
+        D = np.eye(len(cov_fix))
+        D[2, 2] = yaw_sigma_floor_rad / np.sqrt(cov_fix[2, 2])
         cov_fix = D @ cov_fix @ D
     cov = fix_covariance(T_proj, cov_rel, cov_fix)
-    return make_fix_factor(key, T_kf_meas, fix.xyyaw, cov, cauchy_k), cov
+    return make_fix_factor(key, T_kf_meas, fix.measured, cov, cauchy_k), cov
+
+
+@dataclass(frozen=True)
+class Innovation:
+    """A fix against the current estimate: ``d2`` the squared Mahalanobis distance of its planar
+    part, ``distance_m`` the position innovation, ``height_d2`` that of its height alone (None
+    without one)."""
+
+    d2: float
+    distance_m: float
+    height_d2: float | None = None
 
 
 def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarray,
-                  T_kf_meas: np.ndarray, cov_res: np.ndarray) -> tuple[float, float]:
-    """Squared Mahalanobis distance of the fix against the current estimate (keyframe marginal
-    ``cov_kf_body`` (6, 6) included) and the position innovation in metres."""
-    r, H = fix_residual(T_world_kf, T_kf_meas, fix.xyyaw)
+                  T_kf_meas: np.ndarray, cov_res: np.ndarray) -> Innovation:
+    """The fix's innovation against the current estimate (keyframe marginal ``cov_kf_body`` (6, 6)
+    included; ``cov_res`` the residual covariance of :func:`place_fix`)."""
+    r, H = fix_residual(T_world_kf, T_kf_meas, fix.measured)
     S = H @ cov_kf_body @ H.T + cov_res
-    return float(r @ np.linalg.solve(S, r)), float(np.hypot(r[0], r[1]))
+    d2 = float(r[:3] @ np.linalg.solve(S[:3, :3], r[:3]))
+    return Innovation(d2, float(np.hypot(r[0], r[1])), float(r[3] ** 2 / S[3, 3]) if len(r) == 4 else None)
 
 
 def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarray:
     """Squared whitened residuals (n,) of applied fixes at their keyframes' current estimates
-    ``T_world_kf`` (n, 4, 4): the fix factor's residual (:func:`fix_residual`), for all at once."""
+    ``T_world_kf`` (n, 4, 4): the fix factor's residual (:func:`fix_residual`), for all at once
+    (a fix without a height gets a zero z residual of unit variance, which adds nothing)."""
     if not recs:
         return np.zeros(0)
     T = np.asarray(T_world_kf, float) @ np.array([r.T_kf_meas for r in recs])
     target = np.array([r.fix.xyyaw for r in recs])
     a = T[:, :3, 0]  # base_link x axis in the world: yaw is its heading on the xy plane
     dyaw = np.arctan2(a[:, 1], a[:, 0]) - target[:, 2]
-    r = np.column_stack([T[:, 0, 3] - target[:, 0], T[:, 1, 3] - target[:, 1], wrap_angle(dyaw)])
-    w = np.linalg.solve(np.array([rec.cov for rec in recs]), r[:, :, None])[:, :, 0]
+    z = np.array([np.nan if r.fix.height is None else r.fix.height.z_m for r in recs])
+    dz = np.where(np.isnan(z), 0.0, T[:, 2, 3] - np.nan_to_num(z))
+    r = np.column_stack([T[:, 0, 3] - target[:, 0], T[:, 1, 3] - target[:, 1], wrap_angle(dyaw), dz])
+    C = np.tile(np.eye(4), (len(recs), 1, 1))
+    for i, rec in enumerate(recs):
+        n = len(rec.cov)
+        C[i, :n, :n] = rec.cov
+    w = np.linalg.solve(C, r[:, :, None])[:, :, 0]
     return np.einsum("ij,ij->i", r, w)
