@@ -71,6 +71,7 @@ class WrongFixes:
             x_m=fix.x_m + offset * np.cos(bearing),
             y_m=fix.y_m + offset * np.sin(bearing),
             yaw_rad=float(wrap_angle(fix.yaw_rad + sign * np.deg2rad(self.fault.yaw_deg))),
+            height=None,  # a height read at the right place would tell the wrong fix apart: none
         )
         self.n_wrong += 1
         return dataclasses.replace(att, fix=wrong, tracked=False)

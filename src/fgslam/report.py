@@ -82,6 +82,9 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
         row("Fix position error mean [m]", lambda s: fx(s)["position_error_m"]["mean"])
         row("Fix NEES (x,y,yaw) mean", lambda s: fx(s)["nees_mean"], "{:.2f}")
         row("Fix yaw error median [deg]", lambda s: np.degrees(fx(s)["yaw_error_rad"]["median"]), "{:.2f}")
+        row("Fix heights from the DEM (n / z RMSE m / NEES)",  # "–" without a terrain model
+            lambda s: "{:d} / {:.3f} / {:.2f}".format(fx(s)["heights"]["n"], fx(s)["heights"]["error_rmse_m"],
+                                                     fx(s)["heights"]["nees"]), "{}")
         for th in ("0.5", "1", "2"):
             row(f"Fixes within {th} m [%]", lambda s, th=th: 100 * fx(s)["within_m"][th], "{:.1f}")
         for k in variants:

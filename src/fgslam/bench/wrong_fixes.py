@@ -56,7 +56,8 @@ class WrongFixBenchConfig:
 def corrupt_fixes(fixes: list[GlobalFix], fraction: float, offsets_m: tuple[float, float] = (5.0, 50.0),
                   seed: int = 0) -> tuple[list[GlobalFix], np.ndarray]:
     """``fixes`` with ``round(fraction * n)`` of them (seeded) moved by a distance drawn uniformly in
-    ``offsets_m`` in a uniform direction; returns the list and the (n,) bool mask of wrong ones."""
+    ``offsets_m`` in a uniform direction (without a height: one read at the right place would tell
+    them apart); returns the list and the (n,) bool mask of wrong ones."""
     if not 0.0 <= fraction <= 1.0:
         raise ValueError(f"fraction must be in [0, 1], got {fraction}")
     rng = np.random.default_rng(seed)
@@ -67,7 +68,7 @@ def corrupt_fixes(fixes: list[GlobalFix], fraction: float, offsets_m: tuple[floa
     for f, w in zip(fixes, wrong):
         if w:
             d, a = rng.uniform(*offsets_m), rng.uniform(-np.pi, np.pi)
-            f = dataclasses.replace(f, x_m=f.x_m + d * np.cos(a), y_m=f.y_m + d * np.sin(a))
+            f = dataclasses.replace(f, x_m=f.x_m + d * np.cos(a), y_m=f.y_m + d * np.sin(a), height=None)
         out.append(f)
     return out, wrong
 
