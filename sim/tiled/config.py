@@ -3,9 +3,15 @@ the preset's value (:mod:`sim.tiled.presets`)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from sim.craters import EjectaConfig
+from sim.errors import SimError
+
+
+class TiledConfigError(SimError, ValueError):
+    """A tiled world's setting is out of range."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +80,13 @@ class OrbitalProductsConfig:
     sun_elevation_deg: float = 30.0
     sun_azimuth_deg: float = 135.0
     write_image: bool = True
+    # the terrain model dem.tif (sim.tiled.dem): a stereo DTM's posts, effective resolution (Gaussian
+    # sigma in posts) and vertical error (RMS, correlation length); HiRISE-class values
+    write_dem: bool = True
+    dem_post_m: float = 1.0
+    dem_smoothing_posts: float = 1.0
+    dem_sigma_m: float = 0.15
+    dem_correlation_m: float = 25.0
     render_min_rock_px: float = 0.5  # rocks smaller than this many pixels are left out of the render
     # crater detector: p = recall_max * sigmoid((ln D_px - ln d50_px) / log_width) * (1 - penalty * g)
     crater_recall_max: float = 0.95
@@ -84,6 +97,14 @@ class OrbitalProductsConfig:
     crater_precision: float = 0.9
     crater_sigma_centre_rel: float = 0.05  # centre error sigma / D (plus half a pixel)
     crater_sigma_size_rel: float = 0.05
+
+    def __post_init__(self) -> None:
+        for key in ("dem_post_m", "dem_correlation_m"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) > 0):
+                raise TiledConfigError(f"tiled.orbital.{key} must be positive and finite, got {getattr(self, key)!r}")
+        for key in ("dem_smoothing_posts", "dem_sigma_m"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) >= 0):
+                raise TiledConfigError(f"tiled.orbital.{key} must be >= 0 and finite, got {getattr(self, key)!r}")
 
 
 @dataclass(frozen=True)

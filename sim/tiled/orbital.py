@@ -15,6 +15,7 @@ Coverage: the world tiles within ``tiled.orbital.corridor_m`` of the driven path
   whose probability depends on the diameter in pixels and the degradation (parameters in
   :class:`sim.tiled.config.OrbitalProductsConfig`), and ``craters_true.csv``: every crater of
   the world (id, centre, diameter, depth, rim height, degradation, blocky);
+- ``dem.tif``: the terrain model of a stereo DTM over the same coverage (:mod:`sim.tiled.dem`);
 - ``rocks_true.csv``: the rocks within stereo range of the path and the orbitally detectable rocks
   of the coverage (the rest are regenerated from the seed by :class:`TiledWorld`).
 """
@@ -49,6 +50,7 @@ class OrbitalProducts:
     overview_gsd_m: float | None = None
     counts: dict[str, int] = field(default_factory=dict)
     coverage: list[tuple[int, int]] = field(default_factory=list)  # the world tiles covered
+    dem: dict | None = None  # the terrain model's description (sim.tiled.dem.write_dem)
 
 
 def coverage_tiles(world: TiledWorld, path_xy: np.ndarray, corridor_m: float) -> list[tuple[int, int]]:
@@ -123,6 +125,11 @@ def write_orbital_products(world: TiledWorld, path_xy: np.ndarray, cfg: SimConfi
     res.paths["craters_true.csv"] = out / "craters_true.csv"
     if oc.write_image:
         _write_image(world, tiles, cfg, out, res, progress)
+    if oc.write_dem and tiles:
+        from sim.tiled.dem import write_dem
+
+        res.dem = write_dem(world, tiles, oc, cfg.seed, out, progress)
+        res.paths["dem.tif"] = out / "dem.tif"
     res.counts["coverage_tiles"] = len(tiles)
     return res
 

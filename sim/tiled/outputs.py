@@ -128,6 +128,7 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
                             "x in xmin + gsd [col, col + 1], y in ymax - gsd [row + 1, row]; user-defined metric "
                             "CRS = the simulator's world frame (x east, y north, metres)",
         },
+        "dem": products.dem,
         "rock_model": {"model": "Golombek & Rapp (1997)", "k": rc.tiled.rocks.k, "q": world.rock_model.q,
                        "diameter_m": [rc.tiled.rocks.min_diameter_m, rc.tiled.rocks.max_diameter_m],
                        "density_per_m2": world.rock_model.density_per_m2},

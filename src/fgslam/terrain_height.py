@@ -46,7 +46,7 @@ class TerrainHeightConfig:
     enabled: bool = True
     # vertical error of the DEM where the rover stands: the model's own (a HiRISE-class stereo DTM
     # at 1 m posts states 0.1-0.2 m) and the terrain under the wheels that 1 m posts smooth away
-    sigma_m: Positive = 0.2
+    sigma_m: Positive = 0.16
     correlation_m: NonNegative = 25.0  # the DEM error's correlation length: the least spacing of heights
     base_height_m: float = 0.15  # base_link above the wheel-contact plane, along its normal (rover geometry)
     max_slope: Positive = 0.6  # steeper cells (|grad|, 31 deg) give no height: a rover does not stand there
