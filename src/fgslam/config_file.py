@@ -24,7 +24,7 @@ RUN_RECORD_KEYS = ("backend", "relocalization", "inputs")  # what `fgslam run` s
 SIM_RECORD_KEYS = ("world", "seed", "source", "extent", "orbital_extent", "orbital_gsd_m", "relief_m", "preset", "stats",
                    "bag",  # how the bag was written (sim.bag_scene.bag_description)
                    # a kilometre preset's world.yaml (sim.tiled.outputs) also records these
-                   "summary", "orbital_image", "rock_model", "crater_model", "route", "backend_overrides", "relocalizer")
+                   "summary", "orbital_image", "rock_model", "crater_model", "route", "backend_overrides", "relocalizer", "dem")
 
 
 def read_yaml_mapping(path: Path, what: str = "config") -> dict:
