@@ -286,3 +286,38 @@ def test_a_height_far_off_is_refused_and_the_fix_kept_planar(stream, name):
     assert out.fix.height is not None  # the outcome names the fix as it was given
     assert be.stats().extra["n_heights_refused"] == 1
     assert abs(be.estimate().position_m[2] - z0) < 0.05  # z not pulled 5 m up
+
+
+def test_a_comparison_with_a_terrain_model_reports_the_fixes_heights(tmp_path):
+    """The reference pass's fixes carry heights (spaced by the correlation length), every variant
+    gets the same ones, and results.json, fixes.csv and the table report them."""
+    import csv
+    import json
+
+    from _synth_stream import NearestNeighbourMatcher
+
+    from fgslam.compare import CompareConfig, compare_world, relocalizer_set
+    from fgslam.outputs import write_comparison, write_fixes_csv
+    from fgslam.relocalizer import Relocalizer
+
+    inputs = make_stream(seed=7, duration_s=40.0)
+    inputs.dem = plane_dem(a=0.0, b=0.0, c=0.0)  # the synthetic ground is flat at z = 0
+    cfg = CompareConfig(backends=("dr",), reference_backend="dr", backend_overrides={"dr": {"use_fixes": True}},
+                        workers=1, terrain_height=TerrainHeightConfig(correlation_m=2.0, base_height_m=0.0))
+    assert all(isinstance(r, WithHeight) for r in relocalizer_set(inputs, cfg))
+    reloc = Relocalizer(inputs.catalog, cfg.relocalizer, matcher=NearestNeighbourMatcher(inputs.catalog.xy_m))
+    heights = DemHeights(inputs.dem, cfg.terrain_height)
+    wc = compare_world(inputs, cfg, relocalizers=[WithHeight(reloc, heights)])
+    fixes = [a.fix for a in wc.attempts if a.fix is not None]
+    with_h = [f for f in fixes if f.height is not None]
+    assert 0 < len(with_h) < len(fixes) and heights.n_too_close > 0
+    assert all(f.height.z_m == 0.0 for f in with_h)
+    run = wc.runs["dr_reloc"]
+    assert [o.fix for o in run.outcomes] == [f for f in fixes if f.t_recv <= run.t_end]
+    write_comparison(tmp_path, [wc], cfg, rrd=False)
+    h = json.loads((tmp_path / "results.json").read_text())["worlds"][0]["runs"]["dr_reloc"]["fixes"]["heights"]
+    assert h["n"] == len(with_h) and h["error_rmse_m"] < 1e-6
+    assert f"| Fix heights from the DEM (n / z RMSE m / NEES) | {len(with_h)} / 0.000 / 0.00 |" in (tmp_path / "table.md").read_text()
+    rows = list(csv.DictReader(write_fixes_csv(tmp_path / "fixes.csv", run, wc.gt).open()))
+    assert sum(r["z_m"] != "" for r in rows) == len([o for o in run.outcomes if o.fix.height is not None])
+    assert all(abs(float(r["error_z_m"])) < 1e-6 for r in rows if r["z_m"])
