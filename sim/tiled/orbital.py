@@ -76,8 +76,10 @@ def _write_csv_rows(f, rows: np.ndarray, fmt: str) -> None:
 
 
 def write_orbital_products(world: TiledWorld, path_xy: np.ndarray, cfg: SimConfig, out: Path,
-                           progress=None) -> OrbitalProducts:
-    """Write the products of the module doc for the driven path ``path_xy`` (N, 2) into ``out``."""
+                           progress=None, route_xyz: np.ndarray | None = None) -> OrbitalProducts:
+    """Write the products of the module doc for the driven path ``path_xy`` (N, 2) into ``out``.
+    ``route_xyz`` (M, 3), the true base_link positions along it (optional): the terrain model's
+    height error on the route is measured against them (``dem["route_height_rmse_m"]``)."""
     out = Path(out)
     oc, det = cfg.tiled.orbital, cfg.sensors.orbital
     tiles = coverage_tiles(world, path_xy, oc.corridor_m)
@@ -128,8 +130,10 @@ def write_orbital_products(world: TiledWorld, path_xy: np.ndarray, cfg: SimConfi
     if oc.write_dem and tiles:
         from sim.tiled.dem import write_dem
 
-        res.dem = write_dem(world, tiles, oc, cfg.seed, out, progress)
+        res.dem = write_dem(world, tiles, oc, cfg.seed, out, progress, route_xyz=route_xyz,
+                            base_height_m=cfg.rover.base_height_m)
         res.paths["dem.tif"] = out / "dem.tif"
+        res.counts["dem_posts"] = res.dem["valid_posts"]
     res.counts["coverage_tiles"] = len(tiles)
     return res
 

@@ -1,6 +1,7 @@
 """A kilometre-preset ``fgslam sim`` directory, written in one streaming pass:
 ``bag/`` (written while the rover drives), the orbital products of :mod:`sim.tiled.orbital`,
-``world.yaml`` (world, seed, extents, georeference, models, the resolved config, statistics and
+``world.yaml`` (world, seed, extents, georeference, models, the terrain model ``dem`` with its height
+error measured on the driven route against the ground truth, the resolved config, statistics and
 the ``backend_overrides`` the back-ends need for this run's stereo errors, the ``relocalizer``
 settings sized to its catalog) and ``backend.yaml`` (those two blocks alone, for
 ``fgslam run/compare --config``)."""
@@ -24,6 +25,8 @@ from sim.tiled.presets import TILED_PRESETS, backend_calibration, relocalizer_ca
 from sim.tiled.stream import TiledSimulation, cpu_s, peak_rss_mb
 
 log = logging.getLogger(__name__)
+
+TRUTH_SPACING_M = 0.1  # the terrain model's height error on the route: a true pose per this much travel
 
 
 @dataclass
@@ -65,6 +68,21 @@ def _scene_and_stream(sim: TiledSimulation):
     return scene, chain(head, it)
 
 
+def _keep_truth(stream, kept: list, spacing_m: float):
+    """``stream`` as it is; the base_link positions of its ground-truth poses, one per
+    ``spacing_m`` of travel in x, y, appended to ``kept`` as they pass."""
+    from reloc.measurements import GroundTruthPose
+
+    last = None
+    for m in stream:
+        if isinstance(m, GroundTruthPose):
+            p = m.position_m
+            if last is None or (p[0] - last[0]) ** 2 + (p[1] - last[1]) ** 2 >= spacing_m ** 2:
+                kept.append(p)
+                last = p
+        yield m
+
+
 def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
                     progress: Callable[[str, float, float], None] | None = None,
                     style=None, topics=None) -> TiledRun:
@@ -87,11 +105,13 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
     sim = TiledSimulation(cfg, progress=None if progress is None else
                           (lambda d: progress("drive", d, sim.config.traverse.distance_m)))
     scene, stream = _scene_and_stream(sim)
-    bag = write_bag(out / "bag", stream, overwrite=overwrite, style=style, topics=topics, scene=scene,
-                    custom_data={"fgslam.catalog": "catalog.csv"})
+    truth: list = []
+    bag = write_bag(out / "bag", _keep_truth(stream, truth, TRUTH_SPACING_M), overwrite=overwrite, style=style,
+                    topics=topics, scene=scene, custom_data={"fgslam.catalog": "catalog.csv"})
     t_drive = time.perf_counter() - t0
     rss_drive = peak_rss_mb()
-    products = write_orbital_products(sim.world, sim.driver.planner.history_xy, sim.config, out, progress)
+    products = write_orbital_products(sim.world, sim.driver.planner.history_xy, sim.config, out, progress,
+                                      route_xyz=truth)
     wall, cpu = time.perf_counter() - t0, cpu_s() - c0
     stats = dict(sim.stats)
     stats.update({

@@ -156,7 +156,8 @@ def _sim_tiled(cfg, out: Path, overwrite: bool, console, force: bool = False, st
 
         def report(stage: str, done: float, total: float) -> None:
             if stage not in tasks:
-                label = {"drive": f"driving {cfg.world} (m)", "catalogs": "catalogs (tiles)", "image": "orbital image (tiles)"}
+                label = {"drive": f"driving {cfg.world} (m)", "catalogs": "catalogs (tiles)", "image": "orbital image (tiles)",
+                         "dem": "terrain model (blocks)"}
                 tasks[stage] = progress.add_task(label.get(stage, stage), total=total)
             progress.update(tasks[stage], completed=done, total=total)
 
