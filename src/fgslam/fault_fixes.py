@@ -17,7 +17,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from fgslam.fix_sources import FixProducer
+from fgslam.fix_sources import FixProducer, WrappedProducer
 from fgslam.relocalizer import FixAttempt
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.geometry import wrap_angle
@@ -25,34 +25,15 @@ from reloc.geometry import wrap_angle
 SEED_STREAM = 300  # rng stream of the wrong fixes: default_rng([seed, SEED_STREAM])
 
 
-class WrongFixes:
+class WrongFixes(WrappedProducer):
     """``inner``'s fixes, wrong inside ``window`` = [start, end) (s, absolute stream time)."""
 
     def __init__(self, inner: FixProducer, fault, window: tuple[float, float], seed: int) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.fault = fault
         self.window = (float(window[0]), float(window[1]))
         self._rng = np.random.default_rng([int(seed), SEED_STREAM])
         self.n_wrong = 0
-
-    @property
-    def kinds(self) -> tuple[str, ...]:
-        return self.inner.kinds
-
-    @property
-    def period_s(self) -> float:
-        return self.inner.period_s
-
-    @property
-    def config(self) -> object:
-        return self.inner.config
-
-    @property
-    def build_time_s(self) -> float:
-        return self.inner.build_time_s
-
-    def wants(self, est: PoseEstimate) -> bool:
-        return self.inner.wants(est)
 
     def attempt(self, maps: Mapping[str, LandmarkMap], est: PoseEstimate) -> FixAttempt:
         att = self.inner.attempt(maps, est)

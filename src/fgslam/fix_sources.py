@@ -57,6 +57,36 @@ class FixProducer(Protocol):
         """Try to relocalize the maps (by kind) snapshotted with pose ``est`` (``t_meas = est.t``)."""
 
 
+class WrappedProducer:
+    """A relocalizer around another (``inner``): its kinds, period, config, build time and
+    :meth:`wants` are ``inner``'s; subclasses change what :meth:`attempt` returns."""
+
+    def __init__(self, inner: FixProducer) -> None:
+        self.inner = inner
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return self.inner.kinds
+
+    @property
+    def period_s(self) -> float:
+        return self.inner.period_s
+
+    @property
+    def config(self) -> object:
+        return self.inner.config
+
+    @property
+    def build_time_s(self) -> float:
+        return self.inner.build_time_s
+
+    def wants(self, est: PoseEstimate) -> bool:
+        return self.inner.wants(est)
+
+    def attempt(self, maps: Mapping[str, LandmarkMap], est: PoseEstimate) -> FixAttempt:
+        return self.inner.attempt(maps, est)
+
+
 def relocalizers_for(catalogs: Mapping[str, object], configs: Mapping[str, object] | None = None) -> list[FixProducer]:
     """One relocalizer per landmark kind with a catalog in ``catalogs`` (kind name -> catalog),
     built by that kind's relocalizer layer with ``configs[name]`` (None: its defaults); a kind

@@ -21,10 +21,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
-import numpy as np
-
 from fgslam.errors import FgslamError
-from fgslam.fix_sources import FixProducer
+from fgslam.fix_sources import FixProducer, WrappedProducer
 from fgslam.relocalizer import FixAttempt
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.config import NonNegative, Positive, checked
@@ -94,31 +92,13 @@ class DemHeights:
                 "too_steep": self.n_too_steep}
 
 
-class WithHeight:
+class WithHeight(WrappedProducer):
     """A relocalizer whose fixes carry the DEM's height (one :class:`DemHeights` may serve several,
     so that the spacing holds across them)."""
 
     def __init__(self, inner: FixProducer, heights: DemHeights) -> None:
-        self.inner, self.heights = inner, heights
-
-    @property
-    def kinds(self) -> tuple[str, ...]:
-        return self.inner.kinds
-
-    @property
-    def period_s(self) -> float:
-        return self.inner.period_s
-
-    @property
-    def config(self) -> object:
-        return self.inner.config
-
-    @property
-    def build_time_s(self) -> float:
-        return self.inner.build_time_s
-
-    def wants(self, est: PoseEstimate) -> bool:
-        return self.inner.wants(est)
+        super().__init__(inner)
+        self.heights = heights
 
     def attempt(self, maps: Mapping[str, LandmarkMap], est: PoseEstimate) -> FixAttempt:
         att = self.inner.attempt(maps, est)
@@ -140,10 +120,3 @@ def with_heights(relocalizers: list[FixProducer], dem: Dem | None, cfg: TerrainH
     heights = DemHeights(dem, cfg)
     return [WithHeight(r, heights) for r in relocalizers]
 
-
-def height_errors(fixes: list[GlobalFix], t: np.ndarray, z_true: np.ndarray) -> np.ndarray:
-    """z error (n,) of the fixes with a height against the truth's z interpolated at ``t_meas``."""
-    hs = [f for f in fixes if f.height is not None]
-    if not hs:
-        return np.zeros(0)
-    return np.array([f.height.z_m for f in hs]) - np.interp([f.t_meas for f in hs], t, z_true)
