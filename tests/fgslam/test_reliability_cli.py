@@ -128,6 +128,16 @@ def test_bad_start_options_are_named(tmp_path, synth_dir, capsys, args, message)
     assert message in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("content", [None, "not a tiff"])
+def test_a_bad_terrain_model_is_named_before_anything_is_written(tmp_path, synth_dir, capsys, content):
+    dem = tmp_path / "dtm.tif"
+    if content is not None:
+        dem.write_text(content)
+    assert main(["run", str(synth_dir), "--dem", str(dem), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert f"--dem: {dem}" in err and not (tmp_path / "o").exists()
+
+
 def test_the_imu_gap_limit_is_named_and_a_bridged_gap_is_not_driven_through(tmp_path, stream, capsys, caplog):
     """Case 8: a one-hour pause of the whole recording: refused naming runner.max_imu_gap_s; with
     the limit raised, the rover is not driven for the hour at its last command."""

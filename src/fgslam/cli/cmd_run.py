@@ -101,6 +101,19 @@ def load_inputs(directory: Path | None, bag: Path | None, catalog: Path | None, 
         return load_bag(bag, catalog, spec, topics=topics, images=images, image_progress=progress)
 
 
+def read_dem_option(path: Path | None):
+    """The terrain model of ``--dem`` (None without one); a bad file is named with the option."""
+    from fgslam.errors import InputFileError
+    from fgslam.io.dem_tif import read_dem
+
+    if path is None:
+        return None
+    try:
+        return read_dem(path)
+    except InputFileError as exc:
+        raise InputFileError(f"--dem: {exc}") from None
+
+
 def _unused_backend_yaml(directory: Path | None, config: Path | None) -> Path | None:
     """``directory``'s ``backend.yaml`` when it has one and no ``--config`` names another file."""
     f = None if config is not None or directory is None else Path(directory) / "backend.yaml"
@@ -181,7 +194,7 @@ def run_cmd(
     from fgslam.api import run_one
     from fgslam.cli.progress import stream_progress
     from fgslam.cli.viewer import live_url
-    from fgslam.inputs import bag_topics, with_dem
+    from fgslam.inputs import bag_topics
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
 
@@ -191,13 +204,14 @@ def run_cmd(
     topics = topic_map(cfg.topics, topic)
     spec = parse_start(start, start_sigma)
     live = live_url(spawn, serve, connect, console)
+    terrain = read_dem_option(dem)  # before anything is written
     with OutputDir(out, "run", force=force) as od:  # checked, created and locked before any work
         rrd_staged = od.inside(rrd) if rrd is not None else None
         if rrd is not None and rrd_staged is None:
             check_output_path(rrd, "--rrd", directory=False)
         inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics), cfg.images, console)
-        if dem is not None:
-            with_dem(inputs, dem)
+        if terrain is not None:
+            inputs.dem, inputs.source["dem"] = terrain, str(dem)
         live_run = None
         if live is not None:  # pose by pose while the run goes (fgslam.viz.rerun_log.LiveRun)
             from fgslam.viz.rerun_log import LiveRun
