@@ -329,16 +329,15 @@ class EkfSlam(Backend):
         applied (without its height when that was refused) is left in ``self._applied``."""
         s, gate = self._s, self.config.fix_gate
         applied = fix
+        h, H = fix_model(s.p_world, s.R_world_base, height=fix.height is not None)
         if fix.height is not None and not force:
-            h, H = fix_model(s.p_world, s.R_world_base, height=True)
             nu_z = fix.height.z_m - h[3]
             S_z = float(H[3] @ s.P[:POSE_DIM, :POSE_DIM] @ H[3]) + fix.height.var_m2
             if not nu_z * nu_z / S_z <= gate.height_chi2:
                 log.info("t_meas=%.1f s: the fix's height refused (innovation %.2f m, d2 %.1f > %.2f); planar part gated",
                          fix.t_meas, nu_z, nu_z * nu_z / S_z, gate.height_chi2)
-                applied = fix.planar()
+                applied, h, H = fix.planar(), h[:3], H[:3]
         self._applied = applied
-        h, H = fix_model(s.p_world, s.R_world_base, height=applied.height is not None)
         nu = fix_residual(applied.measured, h)
         n_recent = sum(1 for t in s.fix_times if fix.t_meas - gate.correlation_s <= t <= fix.t_meas)
         R_fix = applied.cov * (1.0 + n_recent) if gate.correlation_s > 0 else applied.cov

@@ -242,18 +242,18 @@ def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None, images
         inputs.source.update({k: world_yaml[k] for k in ("world", "seed") if k in world_yaml and not isinstance(world_yaml[k], dict)})
     inputs.source["dir"] = str(path)
     if (path / DEM_FILE).exists():
-        with_dem(inputs, path / DEM_FILE)
+        from fgslam.io.dem_tif import read_dem
+
+        with_dem(inputs, read_dem(path / DEM_FILE), path / DEM_FILE)
     return inputs
 
 
 DEM_FILE = "dem.tif"  # a simulation's orbital terrain model
 
 
-def with_dem(inputs: RunInputs, path: Path) -> RunInputs:
-    """``inputs`` (changed in place) with the terrain model of the GeoTIFF ``path``."""
-    from fgslam.io.dem_tif import read_dem
-
-    inputs.dem = read_dem(path)
+def with_dem(inputs: RunInputs, dem: Dem, path: Path) -> RunInputs:
+    """``inputs`` (changed in place) with the terrain model ``dem`` read from ``path``."""
+    inputs.dem = dem
     inputs.source["dem"] = str(path)
     return inputs
 

@@ -16,7 +16,6 @@ height: nearer heights would count the same error twice.
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -28,8 +27,6 @@ from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.config import NonNegative, Positive, checked
 from reloc.dem import Dem
 from reloc.measurements import FixHeight, GlobalFix
-
-log = logging.getLogger(__name__)
 
 
 class TerrainHeightError(FgslamError):

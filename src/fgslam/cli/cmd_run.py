@@ -194,7 +194,7 @@ def run_cmd(
     from fgslam.api import run_one
     from fgslam.cli.progress import stream_progress
     from fgslam.cli.viewer import live_url
-    from fgslam.inputs import bag_topics
+    from fgslam.inputs import bag_topics, with_dem
     from fgslam.io.outdir import OutputDir, atomic_path, check_output_path
     from fgslam.outputs import write_run_outputs
 
@@ -211,7 +211,7 @@ def run_cmd(
             check_output_path(rrd, "--rrd", directory=False)
         inputs = load_inputs(directory, bag, catalog, spec, bag_topics(topics), cfg.images, console)
         if terrain is not None:
-            inputs.dem, inputs.source["dem"] = terrain, str(dem)
+            with_dem(inputs, terrain, dem)
         live_run = None
         if live is not None:  # pose by pose while the run goes (fgslam.viz.rerun_log.LiveRun)
             from fgslam.viz.rerun_log import LiveRun
