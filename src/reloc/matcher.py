@@ -74,6 +74,9 @@ class MatcherConfig:
     ``wide_side_tol_sigmas`` while fewer than ``wide_max_hypotheses`` hypotheses were generated),
     inlier radius (``inlier_sigmas`` x sigma, at least ``min_inlier_radius_m``) and vote bins
     derive from it. ``scale_tol``: allowed |scale-1|.
+    ``heading_arm_m``: typical arm of a local triangle, which sets the heading error of a
+    3-point pose and so the vote bins and the poses a verification reaches (rocks ~1.5 m apart;
+    None: the median side of the local map's triangles, for landmarks tens of metres apart).
     ``size_ratio_max``: largest allowed ratio of matched rock diameters (None: no size check).
     ``local_neighbours``: k for local triangles. ``batch_triangles``: local triangles in the
     first batch, doubling up to ``max_batch_triangles``; ``verify_per_batch``: pose bins verified
@@ -99,6 +102,7 @@ class MatcherConfig:
     """
 
     sigma_m: Positive = 0.1
+    heading_arm_m: Positive | None = 1.5
     side_tol_sigmas: Positive = 1.0
     wide_side_tol_sigmas: Positive | None = 2.0
     wide_max_hypotheses: NonNegativeInt = 10_000
@@ -168,6 +172,8 @@ class _Search:
     n_hypotheses: int = 0
     n_verified: int = 0
     poses_per_verification: float = 1.0
+    poses_per_guess: float = 1.0
+    n_guesses: int = 0
     stage: int = 0
     log10_weight: float = 0.0
     keys: list[np.ndarray] = field(default_factory=list)
@@ -227,15 +233,20 @@ class ConstellationMatcher:
         if size_log_tol is not None and log_size is not None:
             st.size_check = (log_size, self.catalog.log_size, size_log_tol)
             st.size_fraction = size_compatible_fraction(log_size, self._cat_log_size_sorted, size_log_tol)
-        # vote bins as wide as a 3-point pose's error: heading from ~1.5 m arms, position at the
-        # centroid up to the map radius away from the triangle
-        theta_bin = float(np.clip(2.5 * cfg.side_tol_m / cfg.side_tol_sigmas / 1.5, 0.05, 0.5))
+        # vote bins as wide as a 3-point pose's error: heading from arms of ``heading_arm_m``
+        # (rocks: ~1.5 m; None: the local triangles' median side), position at the centroid up
+        # to the map radius away from the triangle
+        arm = cfg.heading_arm_m if cfg.heading_arm_m is not None else float(np.median(tri.sides_m))
+        theta_bin = float(np.clip(2.5 * cfg.side_tol_m / cfg.side_tol_sigmas / arm, 0.05, 0.5))
         xy_bin = max(0.5, 8.0 * cfg.sigma_m, theta_bin * (radius - cfg.inlier_radius_m))
         # distinct poses a verification can reach: its vote bin (about a 3-point pose's error) at
         # the resolution of the inlier radius (r in position, r at the map's edge in heading)
         r = cfg.inlier_radius_m
         reach_theta, reach_xy = max(1.0, theta_bin * (radius - r) / r), max(1.0, xy_bin / r)
         st.poses_per_verification = reach_theta * reach_xy**2
+        # a guess is verified from one pose: its first stage reaches first_stage_factor inlier
+        # radii each way (position, and heading at the map's edge), not a whole vote bin
+        st.poses_per_guess = min(st.poses_per_verification, (2.0 * cfg.first_stage_factor) ** 3)
         guess = None if prior is None else prior.guess
         if guess is not None:
             self._verify_guess(xy, guess, st)
@@ -432,6 +443,7 @@ class ConstellationMatcher:
         st.log10_weight = math.log10(cfg.guess_share)
         st.n_hypotheses += 1
         st.n_verified += 1
+        st.n_guesses += 1
         found = self._verify_one(xy, guess, None, st)
         if found is None:
             return
@@ -527,17 +539,22 @@ class ConstellationMatcher:
 
         Under a wrong pose the inlier count beyond the 3 rocks of the generating triangle is
         bounded by Binomial(M - 3, mean p_i) (Hoeffding), Bonferroni over the poses tested so far
-        (every hypothesis generated, plus ``poses_per_verification`` for every verified one: its
-        re-fits move the pose across its 3-point uncertainty and keep the best), and the
-        sequential-testing weight of the current stage (:func:`_stage_weights`).
+        (every hypothesis generated, plus ``poses_per_verification`` for every verified bin and
+        ``poses_per_guess`` for a verified guess: its re-fits move the pose across its 3-point
+        uncertainty, or a guess's across its first-stage radius, and keep the best), and the
+        sequential-testing weight of the current stage (:func:`_stage_weights`). A guess's
+        inliers are all evidence (it was not built from three of them).
         """
         sim, inl = st.best
         p = float(np.mean(self._chance(sim, xy, st)))
         # the 3 rocks of the generating triangle are inliers by construction (whichever rocks
-        # end up as inliers after the re-fits, 3 of them are not evidence)
-        tail = log10_binomial_tail(inl.count - 3, xy.shape[0] - 3, p)
+        # end up as inliers after the re-fits, 3 of them are not evidence); a guess was not
+        # built from the map's rocks, so every inlier of its pose is evidence
+        free = 0 if st.best_from_guess else 3
+        tail = log10_binomial_tail(inl.count - free, xy.shape[0] - free, p)
         log10_weight = st.log10_weight
-        n_tests = st.n_hypotheses + st.n_verified * st.poses_per_verification
+        n_tests = (st.n_hypotheses + (st.n_verified - st.n_guesses) * st.poses_per_verification
+                   + st.n_guesses * st.poses_per_guess)
         lfa = tail + math.log10(max(n_tests, 1.0)) - log10_weight
         return lfa, p
 

@@ -290,9 +290,12 @@ def test_a_good_guess_is_verified_without_a_search(catalog):
         assert res.n_hypotheses == 1 and res.n_verified == 1
         _check(res, local, theta, t, pos_tol=0.05, head_tol_deg=0.3)
         assert res.n_inliers >= searched.n_inliers - 2
-        # the guess's test: its share of the budget, the poses its re-fits can reach
-        tail = log10_binomial_tail(res.n_inliers - 3, local.shape[0] - 3, res.chance_probability)
+        # the guess's test: its share of the budget, the poses its re-fits can reach (at most
+        # (2 first_stage_factor)^3), every inlier as evidence (none of them built the guess)
+        tail = log10_binomial_tail(res.n_inliers, local.shape[0], res.chance_probability)
         assert res.log10_false_alarm >= tail + np.log10(2.0) - np.log10(cfg.guess_share) - 1e-9
+        reach = (2.0 * cfg.first_stage_factor) ** 3
+        assert res.log10_false_alarm <= tail + np.log10(1.0 + reach) - np.log10(cfg.guess_share) + 1e-9
 
 
 def test_a_wrong_guess_falls_back_to_the_search(catalog):
