@@ -54,3 +54,23 @@ def test_clopper_pearson_upper_bound_matches_its_closed_form():
     for n in (1, 10, 3000):
         assert abs(clopper_pearson_upper(0, n) - (1 - 0.05 ** (1 / n))) < 1e-12
     assert clopper_pearson_upper(5, 5) == 1.0 and np.isnan(clopper_pearson_upper(0, 0))
+
+
+def test_a_lost_estimate_is_not_probed_away():
+    """Lost (sigma above lost_sigma_m), the relocalizer searches the whole catalog, which holds
+    the map's own place wherever the map is moved: the probe skips the away attempt, and the
+    home attempt still finds the map where it is."""
+    xy, size, cat, truth = _world()
+    cfg = RelocalizerConfig(window_path_m=0.0, min_new_observations=0)
+    probe = OutOfCatalogProbe("rocks", cat, cfg, truth)
+    t, x0 = 3500.0, 350.0
+    T = np.eye(4)
+    T[0, 3] = x0
+    lost = np.diag([cfg.lost_sigma_m**2 * 4, cfg.lost_sigma_m**2 * 4, 1e-4, 1e-5, 1e-5, 1e-4])
+    probe.attempt({"rocks": _map_at(xy, size, x0)}, PoseEstimate(t, T, lost))
+    (rec,) = probe.records
+    assert rec["skipped"] == "whole-catalog search (lost or no prior)" and "away" not in rec
+    assert rec["sigma_m"] > cfg.lost_sigma_m
+    assert rec["home"] == "fix" and rec["home_error_m"] < 0.1
+    s = summarize(probe.records, {"rocks": 1e-3})["rocks"]
+    assert s["out_of_catalog_attempts"] == 0 and s["skipped"] == {"whole-catalog search (lost or no prior)": 1}

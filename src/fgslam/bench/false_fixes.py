@@ -10,7 +10,10 @@ position of its past that is at least twice the map's extent plus the search rad
 then lies over catalogued ground the rover drove through, with the catalog's real density, sizes
 and false entries, but none of its landmarks is there (the attempt is skipped while the rover has
 not yet been that far). Every fix from such an attempt is false. The same attempt is also made on the
-map where it is, so the table shows the success rate beside the false-fix rate.
+map where it is, so the table shows the success rate beside the false-fix rate. An estimate
+that the relocalizer would search the whole catalog for (lost: planar sigma above
+``lost_sigma_m``, or no search prior) is not probed away: the whole catalog holds the map's own
+place, wherever the map is moved (skipped as "whole-catalog search").
 
 The acceptance test bounds the chance that a wrong pose is accepted by
 ``10 ** matcher.max_log10_false_alarm`` per attempt (docs/matcher.md); the measured rate is
@@ -29,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fgslam.backends.reanchor import is_lost
 from fgslam.local_window import LocalMapWindow
 from fgslam.relocalizer import FixAttempt, StaleMapCheck
 from reloc.backend import LandmarkMap, PoseEstimate, Trajectory
@@ -85,13 +89,19 @@ class OutOfCatalogProbe:
         home = self.home.attempt({kind: lmap}, est)
         rec.update(home=home.status, home_error_m=self._error(home, est.t))
         dxy = self._away_offset(lmap, est)
-        if dxy is None:
+        rec["sigma_m"] = float(est.planar_sigma_m)
+        if self.config.prior_sigmas is None or is_lost(est, self.config.lost_sigma_m):
+            # no search prior: the whole catalog is searched, the map's own place included,
+            # so moving the map does not take it out of the catalog
+            rec["skipped"] = "whole-catalog search (lost or no prior)"
+        elif dxy is None:
             rec["skipped"] = "no place far enough yet"
         else:
             m2, e2 = shifted(lmap, est, dxy)
             away = self.away.attempt({kind: m2}, e2)
             rec.update(away=away.status, away_shift_m=float(np.hypot(*dxy)),
-                       away_inliers=None if away.fix is None else len(away.local_xy))
+                       away_inliers=None if away.fix is None else len(away.local_xy),
+                       away_from_home_m=self._error(away, est.t))
         self.records.append(rec)
         return FixAttempt(est.t, len(lmap), f"probe: {home.status}", home.match_time_s, source=kind)
 
