@@ -88,9 +88,10 @@ class OutOfCatalogProbe:
             lmap = self.window.update(lmap, est.position_m)
         home = self.home.attempt({kind: lmap}, est)
         rec.update(home=home.status, home_error_m=self._error(home, est.t))
-        dxy = self._away_offset(lmap, est)
         rec["sigma_m"] = float(est.planar_sigma_m)
-        if self.config.prior_sigmas is None or is_lost(est, self.config.lost_sigma_m):
+        whole_catalog = self.config.prior_sigmas is None or is_lost(est, self.config.lost_sigma_m)
+        dxy = None if whole_catalog else self._away_offset(lmap, est)
+        if whole_catalog:
             # no search prior: the whole catalog is searched, the map's own place included,
             # so moving the map does not take it out of the catalog
             rec["skipped"] = "whole-catalog search (lost or no prior)"
