@@ -58,8 +58,9 @@ class FixProducer(Protocol):
 
 
 class WrappedProducer:
-    """A relocalizer around another (``inner``): its kinds, period, config, build time and
-    :meth:`wants` are ``inner``'s; subclasses change what :meth:`attempt` returns."""
+    """A relocalizer around another (``inner``): its kinds, period, config, build time,
+    :meth:`wants` and any other attribute are ``inner``'s; subclasses change what :meth:`attempt`
+    returns."""
 
     def __init__(self, inner: FixProducer) -> None:
         self.inner = inner
@@ -85,6 +86,11 @@ class WrappedProducer:
 
     def attempt(self, maps: Mapping[str, LandmarkMap], est: PoseEstimate) -> FixAttempt:
         return self.inner.attempt(maps, est)
+
+    def __getattr__(self, name: str):  # the rest of the inner relocalizer (its catalog, counters) as it is
+        if name == "inner":  # not set yet (copy, unpickling): no recursion
+            raise AttributeError(name)
+        return getattr(self.inner, name)
 
 
 def relocalizers_for(catalogs: Mapping[str, object], configs: Mapping[str, object] | None = None) -> list[FixProducer]:

@@ -103,11 +103,6 @@ class WithHeight(WrappedProducer):
             return att
         return replace(att, fix=self.heights.attach(att.fix))
 
-    def __getattr__(self, name: str):  # the rest of the relocalizer (its catalog, counters) as it is
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
 
 def with_heights(relocalizers: list[FixProducer], dem: Dem | None, cfg: TerrainHeightConfig) -> list[FixProducer]:
     """``relocalizers`` whose fixes carry heights from ``dem`` (as they are without a DEM or when

@@ -51,8 +51,9 @@ class Dem:
             raise DemError("the DEM holds infinite heights (no-data must be NaN)")
         if not np.any(np.isfinite(z)):
             raise DemError("the DEM holds no finite height")
-        z = z.copy()
-        z.setflags(write=False)
+        if z.flags.writeable or z.base is not None:  # the caller's array (or a view of one): a frozen copy
+            z = z.copy()
+            z.setflags(write=False)
         object.__setattr__(self, "z_m", z)
 
     @property

@@ -54,3 +54,27 @@ def test_backoff_settings_are_checked():
         RelocalizerConfig(backoff_max_period_s=0.0)
     with pytest.raises(RelocalizerError, match="backoff_after"):
         RelocalizerConfig(backoff_after=-1)
+
+
+def test_wrapped_relocalizers_follow_the_inner_backoff():
+    """A wrapper (heights, wrong fixes, the crater bench's counter) reports the period the inner
+    relocalizer has now, not the one it had when wrapped, and forwards its other attributes."""
+    from fgslam.bench.craters import CraterBenchConfig, _CountingRelocalizer
+    from fgslam.fix_sources import WrappedProducer
+
+    rng = np.random.default_rng(4)
+    sizes = rng.uniform(0.3, 1.5, 40)
+    cat = RockCatalog(rng.uniform(-15, 15, (40, 2)), sizes, np.ones(40))
+    reloc = Relocalizer(cat, {"min_new_observations": 0, "backoff_after": 1, "min_travel_m": 0.0, "min_turn_deg": 0.0,
+                              "single_landmark": False})  # one rock of a random map may sit in a catalog rock's gate
+    wrapped = [WrappedProducer(reloc), _CountingRelocalizer(reloc, cat, None, CraterBenchConfig())]
+    est = PoseEstimate(t=0.0, T_world_base=np.eye(4), cov=np.eye(6) * 1e-4)
+    elsewhere = _map(rng.uniform(-15, 15, (40, 2)), sizes)
+    for _ in range(3):
+        assert reloc.attempt(elsewhere, est).status == "no match"
+    assert reloc.period_s == 16.0
+    for w in wrapped:
+        assert w.period_s == 16.0 and w.kinds == ("rocks",) and w.config is reloc.config
+        assert w.n_crops_built == reloc.n_crops_built  # forwarded as it is
+        with pytest.raises(AttributeError):
+            w.no_such_attribute

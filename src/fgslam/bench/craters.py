@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from fgslam.bench.sim_dir import directory_overrides, first_seconds
+from fgslam.fix_sources import WrappedProducer
 from fgslam.metrics import fix_errors, interpolate_truth
 
 PASSES: dict[str, tuple[bool, tuple[str, ...]]] = {  # name -> (craters mapped, relocalizers)
@@ -46,17 +47,14 @@ class CraterBenchConfig:
     duration_s: float | None = None  # the stretch: the first this many seconds of each bag (None: all)
 
 
-class _CountingRelocalizer:
-    """A relocalizer that also counts, at each attempt, the catalogued craters mapped (module doc)."""
+class _CountingRelocalizer(WrappedProducer):
+    """A relocalizer that also counts, at each attempt, the catalogued craters mapped (module doc);
+    its period (with the inner one's backoff), kinds and config are the inner relocalizer's."""
 
     def __init__(self, inner, catalog, gt, cfg: CraterBenchConfig) -> None:
-        self.inner, self.catalog, self.gt, self.cfg = inner, catalog, gt, cfg
-        self.kinds, self.period_s, self.build_time_s = inner.kinds, inner.period_s, inner.build_time_s
-        self.config = inner.config
+        super().__init__(inner)
+        self.catalog, self.gt, self.cfg = catalog, gt, cfg
         self.records: list[tuple[float, int, object]] = []  # (t, catalogued mapped, attempt)
-
-    def wants(self, est) -> bool:
-        return self.inner.wants(est)
 
     def catalogued(self, lmap, est) -> int:
         if len(lmap) == 0:
