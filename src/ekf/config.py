@@ -11,7 +11,7 @@ plus, for slip, a forward and lateral variance proportional to the distance driv
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Annotated
+from typing import Annotated, Literal
 
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
@@ -64,6 +64,20 @@ class FixGateConfig:
     # before it). 0 (default) disables it: counted twice, the EKF + reloc was pessimistic (first
     # 800 m of cratered-3km: position NEES 0.55, ATE 0.175 m; without: 1.11, 0.156 m; docs/ekf.md).
     correlation_s: NonNegative = 0.0
+    # How the filter takes the fixes' correlation (docs/ekf.md, "Correlated fixes"). "producer":
+    # each fix's covariance as it came (RelocalizerConfig.correlation, "rocks" by default: 1 + the
+    # earlier uses of its catalog landmarks, never forgotten). "distance": its match covariance
+    # re-scaled (GlobalFix.recorrelated) by reloc.covariance.distance_correlation_scale of the
+    # distance from the last fix applied from the same source. "bias": the shared error as a
+    # state: per source in bias_sources, a (x, y, yaw) offset of the catalog's fixes, first-order
+    # Gauss-Markov along the distance between that source's fixes (correlation length
+    # correlation_length_m), stationary covariance bias_share x the fix's match covariance; the
+    # rest of it and the rover-relative part are the fix's white noise. A fix from another source
+    # is taken as it came.
+    correlation_model: Literal["producer", "distance", "bias"] = "producer"
+    correlation_length_m: Positive = 15.0  # the fixes' error correlation measured on rocky-1km (docs/app.md)
+    bias_sources: tuple[str, ...] = ("rocks", "craters")
+    bias_share: Annotated[float, Interval(gt=0, lt=1)] = 0.9
     # Recovery of an overconfident filter: when the Mahalanobis gate has rejected consensus_n
     # fixes within consensus_window_s whose innovations agree (every xy innovation within
     # consensus_tol_m of their mean, yaw within consensus_tol_deg), the filter, not the fixes, is

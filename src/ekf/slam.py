@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,13 +33,39 @@ from reloc.backend import (
     Trajectory,
 )
 from reloc.calibration import calibration_report
-from reloc.geometry import log_so3, project_so3
+from reloc.covariance import distance_correlation_scale
+from reloc.geometry import log_so3, project_so3, wrap_angle
 from reloc.landmark_book import LandmarkBook
 from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep, uphill_rad
 from reloc.rows import RowBuffer
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class _FixBias:
+    """A fix's update with its source's shared error as a state (``EkfSlam._fix_bias_model``):
+    columns (pose and offset), Jacobian, white noise, the propagated offset's share of ``h``, the
+    propagated (pose, offset) covariance, and the propagation to apply once the fix is taken."""
+
+    cols: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    offset: np.ndarray
+    P_sub: np.ndarray
+    source: str
+    fcols: np.ndarray
+    rho: float
+    Q: np.ndarray
+
+    def propagate(self, s: FilterState) -> None:
+        """``f <- rho f`` and ``P_ff += Q`` on the whole state (rows and columns of ``f``)."""
+        s.fix_bias[self.source] = self.rho * s.fix_bias[self.source]
+        f = self.fcols
+        s.P[f, :] *= self.rho
+        s.P[:, f] *= self.rho
+        s.P[np.ix_(f, f)] += self.Q
 
 _ORTHONORMALISE_EVERY = 200
 _T_EPS = 1e-9
@@ -83,6 +110,11 @@ class EkfSlam(Backend):
         slip_col = scalar_state(cfg.slip_sigma > 0, cfg.slip_sigma)
         slope_col = scalar_state(slip_col >= 0 and cfg.slope_slip_sigma_per_rad > 0, cfg.slope_slip_sigma_per_rad)
         gm_col = scalar_state(slip_col >= 0 and cfg.slip_gm_sigma > 0, cfg.slip_gm_sigma)
+        fix_bias_cols = {}  # the fixes' shared error per source: zero until its first fix (FixGateConfig)
+        if cfg.fix_gate.correlation_model == "bias":
+            for src in dict.fromkeys(cfg.fix_gate.bias_sources):
+                fix_bias_cols[src] = scalar_state(True, 0.0)
+                scalar_state(True, 0.0), scalar_state(True, 0.0)
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
@@ -96,6 +128,8 @@ class EkfSlam(Backend):
             slip_col=slip_col,
             slope_col=slope_col,
             gm_col=gm_col,
+            fix_bias_cols=fix_bias_cols,
+            fix_bias={src: np.zeros(3) for src in fix_bias_cols},
             book=LandmarkBook(self.config.book),
             t_last_attitude=float(initial.t),
             t_last_checkpoint=float(initial.t),
@@ -339,14 +373,21 @@ class EkfSlam(Backend):
                 applied, h, H = fix.planar(), h[:3], H[:3]
         self._applied = applied
         nu = fix_residual(applied.measured, h)
-        n_recent = sum(1 for t in s.fix_times if fix.t_meas - gate.correlation_s <= t <= fix.t_meas)
-        R_fix = applied.cov * (1.0 + n_recent) if gate.correlation_s > 0 else applied.cov
+        cols, bias = np.arange(POSE_DIM), None
+        if applied.source in s.fix_bias_cols:  # the shared error a state (correlation_model "bias")
+            bias = self._fix_bias_model(applied, H)
+            cols, H, R_fix = bias.cols, bias.H, bias.R
+            nu -= bias.offset
+            nu[2] = wrap_angle(float(nu[2]))
+        else:
+            R_fix = self._fix_cov(applied)
         dist = math.hypot(nu[0], nu[1])
         if not force and dist > gate.distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {gate.distance_m:.2f} m")
         if not force and abs(math.degrees(nu[2])) > gate.yaw_deg:
             return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
-        S = H[:3] @ s.P[:POSE_DIM, :POSE_DIM] @ H[:3].T + R_fix[:3, :3]
+        P_sub = s.P[np.ix_(cols, cols)] if bias is None else bias.P_sub
+        S = H[:3] @ P_sub @ H[:3].T + R_fix[:3, :3]
         d2 = float(nu[:3] @ np.linalg.solve(S, nu[:3]))  # the planar part: the height was gated above
         key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
         if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again
@@ -363,7 +404,10 @@ class EkfSlam(Backend):
             self._reset_Q[key] = Q
             self._gate_rejects.clear()
             self._count["n_consensus_resets"] += 1
-        s.P, res = joseph_update(s.P, np.arange(POSE_DIM), H, nu, R_fix)
+        if bias is not None:
+            bias.propagate(s)
+        s.fix_last_xy = {**s.fix_last_xy, fix.source: (float(s.p_world[0]), float(s.p_world[1]))}  # where, by the estimate
+        s.P, res = joseph_update(s.P, cols, H, nu, R_fix)
         s.inject(res.dx)
         horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
         s.fix_times = tuple(t for t in s.fix_times if t >= horizon) + (fix.t_meas,)
@@ -371,6 +415,53 @@ class EkfSlam(Backend):
         if applied is not fix:
             self._count["n_heights_refused"] += 1
         return FixOutcome(fix, True, "", d2)
+
+    def _fix_bias_model(self, fix: GlobalFix, H_pose: np.ndarray) -> _FixBias:
+        """The update of ``fix`` with its source's shared error as a state (``correlation_model``
+        "bias", see :class:`FixGateConfig`): ``z = h(x) + f + v``, ``f`` first-order Gauss-Markov
+        along the distance between the source's fixes, propagated to this fix (not yet in ``P``:
+        a rejected fix leaves the state as it was)."""
+        s, gate = self._s, self.config.fix_gate
+        c = s.fix_bias_cols[fix.source]
+        fcols = np.arange(c, c + 3)
+        last = s.fix_last_xy.get(fix.source)
+        d = math.inf if last is None else math.hypot(s.p_world[0] - last[0], s.p_world[1] - last[1])
+        rho = math.exp(-d / gate.correlation_length_m)
+        match, rel = fix.split_cov()
+        Q = (1.0 - rho * rho) * gate.bias_share * match
+        white = (1.0 - gate.bias_share) * match + rel
+        m = len(fix.measured)
+        H = np.zeros((m, POSE_DIM + 3))
+        H[:, :POSE_DIM] = H_pose
+        H[:3, POSE_DIM:] = np.eye(3)
+        R = np.zeros((m, m))
+        R[:3, :3] = white
+        if fix.height is not None:  # z read at the fix's (x, y): the offset moves it along the gradient g
+            g = np.linalg.solve(fix.cov_xyyaw, fix.height.cov_xyyaw)
+            H[3, POSE_DIM:] = g
+            R[3, :3] = R[:3, 3] = white @ g
+            R[3, 3] = fix.height.var_m2 - float(g @ fix.height.cov_xyyaw) + float(g @ white @ g)
+        cols = np.concatenate([np.arange(POSE_DIM), fcols])
+        P_sub = s.P[np.ix_(cols, cols)].copy()
+        P_sub[POSE_DIM:, :] *= rho
+        P_sub[:, POSE_DIM:] *= rho
+        P_sub[POSE_DIM:, POSE_DIM:] += Q
+        offset = H[:, POSE_DIM:] @ (rho * s.fix_bias[fix.source])  # what the propagated offset adds to h
+        return _FixBias(cols, H, R, offset, P_sub, fix.source, fcols, rho, Q)
+
+    def _fix_cov(self, fix: GlobalFix) -> np.ndarray:
+        """The covariance ``fix`` is applied with: its own, or (``fix_gate.correlation_model``
+        "distance") its match covariance re-scaled for its correlation with the last fix applied
+        from the same source (the distance between the estimate's positions at the two fixes), times the recent-fix factor when ``fix_gate.correlation_s`` is on."""
+        s, gate = self._s, self.config.fix_gate
+        if gate.correlation_model == "distance":
+            last = s.fix_last_xy.get(fix.source)
+            d = math.inf if last is None else math.hypot(s.p_world[0] - last[0], s.p_world[1] - last[1])
+            fix = fix.recorrelated(distance_correlation_scale(d, gate.correlation_length_m))
+        if gate.correlation_s <= 0:
+            return fix.cov
+        n_recent = sum(1 for t in s.fix_times if fix.t_meas - gate.correlation_s <= t <= fix.t_meas)
+        return fix.cov * (1.0 + n_recent)
 
     def _consensus(self, t_meas: float, nu: np.ndarray) -> bool:
         """Record a Mahalanobis rejection; True when it completes a consistent set (see FixGateConfig)."""

@@ -1,7 +1,7 @@
 """The filter state: pose, landmarks, joint covariance, landmark book and schedule clocks.
 
 Layout of the error state (and of ``P``): ``[dp_world (3), dtheta_world (3), (de (3), ds (1)),
-(db (1)), (dg (1), (dk (1)), (do (1))), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
+(db (1)), (dg (1), (dk (1)), (do (1))), (df_src (3) per fix source), dl_0 (3), dl_1 (3), ...]`` with ``R_true = Exp(dtheta) R``: the convention of
 :mod:`reloc.backend`, so the pose block of ``P`` is directly the pose covariance of
 :class:`reloc.backend.PoseEstimate`. The optional calibration block (``head`` 10 instead of 6)
 holds the stereo measurements' rotation error ``E_true = Exp(de) E`` and scale ``s_true = s + ds``
@@ -10,7 +10,8 @@ rate at which the IMU's reported heading drifts about world z (its gyro bias, on
 gravity reference has taken out roll and pitch). The optional slip ``g`` is the share of the
 commanded distance the wheels lose to the soil (``v_true = (1 - g - k theta - o) v``), a bias that a white model
 of slip cannot represent; the optional ``k`` is its growth per rad of uphill pitch ``theta`` and
-the optional ``o`` its first-order Gauss-Markov wander with the soil. The landmarks ``dl_i`` are 3D points of every
+the optional ``o`` its first-order Gauss-Markov wander with the soil. The optional ``f_src`` is the
+(x, y, yaw) error that one catalog's fixes share (``FixGateConfig.correlation_model`` "bias"). The landmarks ``dl_i`` are 3D points of every
 landmark kind in one block; ``book.kind`` tags each with its kind (:mod:`ekf.kinds`).
 """
 
@@ -60,6 +61,9 @@ class FilterState:
     t_last_checkpoint: float
     n_steps_since_orthonormalise: int = 0
     fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
+    fix_last_xy: dict = field(default_factory=dict)  # source -> the estimate's (x, y) at the last fix applied from it
+    fix_bias_cols: dict = field(default_factory=dict)  # source -> first column of its (x, y, yaw) fix offset
+    fix_bias: dict = field(default_factory=dict)  # source -> (3,) its fixes' (x, y, yaw) offset
     head: int = POSE_DIM  # states before the landmarks: the pose, then the calibration, yaw-rate bias and slip when on
     n_calib: int = 0  # CALIB_DIM when the calibration is estimated, else 0
     bias_col: int = -1  # column of the yaw-rate bias in P, -1 when not estimated
@@ -128,6 +132,9 @@ class FilterState:
             t_last_checkpoint=self.t_last_checkpoint,
             n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
             fix_times=self.fix_times,
+            fix_last_xy=dict(self.fix_last_xy),
+            fix_bias_cols=self.fix_bias_cols,  # fixed at construction
+            fix_bias={k: v.copy() for k, v in self.fix_bias.items()},
             head=self.head,
             n_calib=self.n_calib,
             bias_col=self.bias_col,
@@ -161,6 +168,8 @@ class FilterState:
             self.slope_gain = self.slope_gain + float(dx[self.slope_col])
         if self.gm_col >= 0:
             self.slip_gm = self.slip_gm + float(dx[self.gm_col])
+        for src, c in self.fix_bias_cols.items():
+            self.fix_bias[src] = self.fix_bias[src] + dx[c:c + 3]
         if self.n_landmarks:
             self.l_world = self.l_world + dx[self.head:].reshape(-1, 3)
 

@@ -114,23 +114,14 @@ def fix_from_similarity(
         cov[:2, 2] = cov[2, :2] = var_yaw * perp
         cov[2, 2] = var_yaw
     cov = cov * cov_scale
+    rel = None
     if relative_cov_xy is not None:  # the rover's drift from its map: no catalog error to scale
-        cov[:2, :2] += 0.5 * (relative_cov_xy + np.transpose(relative_cov_xy))
+        rel = 0.5 * (np.asarray(relative_cov_xy, float) + np.transpose(relative_cov_xy))
+        cov[:2, :2] += rel
     return GlobalFix(
         t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
-        cov_xyyaw=cov, n_inliers=n, rmse_m=float(rmse_m),
+        cov_xyyaw=cov, n_inliers=n, rmse_m=float(rmse_m), correlation_scale=cov_scale, cov_relative_xy=rel,
     )
-
-
-def distance_correlation_scale(distance_m: float, length_m: float) -> float:
-    """Covariance multiplier of a fix made ``distance_m`` of path after the previous one, when the
-    fixes' errors are a first-order Gauss-Markov process along the path (correlation
-    ``rho = exp(-d / length_m)``: the catalog errors of the landmarks two fixes share) and a
-    back-end fuses them as independent: ``(1 + rho) / (1 - rho)``, the variance of the mean of
-    such a sequence over that of as many independent fixes. A fix at the same place (``d`` -> 0)
-    adds almost nothing; ``d`` is floored at 1 % of the length (a multiplier of ~200)."""
-    rho = float(np.exp(-max(float(distance_m), 0.01 * length_m) / length_m))
-    return (1.0 + rho) / (1.0 - rho)
 
 
 def rover_weights(xy: np.ndarray, rover_xy: np.ndarray, radius_m: float | None) -> np.ndarray:
@@ -241,4 +232,4 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     cov[2, 2] = cfg.single_sigma_yaw_rad ** 2
     xy = est.position_m[:2] + (np.asarray(catalog_xy, float) - np.asarray(landmark_xy, float))
     return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=float(est.yaw_rad),
-                     cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0)
+                     cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0, correlation_scale=cov_scale)

@@ -20,6 +20,7 @@ FIX_COLUMNS = [
     "t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "var_x", "var_y", "var_yaw", "cov_xy", "cov_xyaw", "cov_yyaw",
     "n_inliers", "rmse_m", "accepted", "reason", "error_position_m", "error_yaw_rad",
     "z_m", "var_z", "error_z_m",  # the fix's height from the DEM (empty without one)
+    "source", "correlation_scale",  # the catalog's landmark kind(s); the producer's correlation factor in the covariance
 ]
 
 
@@ -38,7 +39,7 @@ def write_fixes_csv(path: Path, run: RunResult, gt: Trajectory | None) -> Path:
         f, C, h = o.fix, o.fix.cov_xyyaw, o.fix.height
         height = ["", "", ""] if h is None else [h.z_m, h.var_m2, h.z_m - zt]
         rows.append([f.t_meas, f.t_recv, f.x_m, f.y_m, f.yaw_rad, C[0, 0], C[1, 1], C[2, 2], C[0, 1], C[0, 2], C[1, 2],
-                     f.n_inliers, f.rmse_m, int(o.accepted), o.reason, ep, ey, *height])
+                     f.n_inliers, f.rmse_m, int(o.accepted), o.reason, ep, ey, *height, f.source, f.correlation_scale])
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(FIX_COLUMNS)

@@ -31,7 +31,6 @@ import numpy as np
 from fgslam.backends.reanchor import is_lost
 from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
-    distance_correlation_scale,
     fix_from_similarity,
     fix_from_single,
     identify_single,
@@ -42,6 +41,7 @@ from fgslam.match_to_fix import (
 )
 from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
+from reloc.covariance import distance_correlation_scale
 from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix, RockCatalog
 
@@ -170,6 +170,8 @@ class Relocalizer:
             self._misses = 0
         elif att.status.startswith(("no match", "bad scale")):
             self._misses += 1
+        if att.fix is not None and not att.fix.source:
+            att = dataclasses.replace(att, fix=dataclasses.replace(att.fix, source=self.kinds[0]))
         return att if att.source else dataclasses.replace(att, source=self.kinds[0])
 
     def _attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:

@@ -99,7 +99,7 @@ class RelocalizerConfig:
     # "window": 1 + number of fixes produced in the preceding correlation_window_s. "distance":
     # the fixes' errors as a Gauss-Markov process along the path, correlation exp(-d / L) between
     # fixes d metres of path apart, L = correlation_length_m: (1 + rho) / (1 - rho) with rho at the
-    # path since the previous fix (fgslam.match_to_fix.distance_correlation_scale). "none": 1.
+    # path since the previous fix (reloc.covariance.distance_correlation_scale). "none": 1.
     correlation: Literal["rocks", "window", "distance", "none"] = "rocks"
     correlation_window_s: Positive = 60.0
     correlation_length_m: Positive = 15.0

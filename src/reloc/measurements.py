@@ -202,6 +202,12 @@ class GlobalFix:
     ``cov_xyyaw`` (3, 3): covariance of (x_m, y_m, yaw_rad). ``n_inliers``/``rmse_m`` describe the
     constellation match that produced it. ``measured`` / ``cov`` are the fix as one vector
     (x, y, yaw[, z]) with its (3, 3) or (4, 4) covariance, the form the back-ends update with.
+
+    Successive fixes from one catalog share its errors. ``source`` names the catalog's landmark
+    kind(s); ``correlation_scale`` (>= 1) is the factor the producer multiplied the match's
+    covariance by for that (its correlation model), and ``cov_relative_xy`` (2, 2) the rover's
+    drift from its map added after it, so ``cov_xyyaw = correlation_scale * C_match + C_rel``: a
+    consumer with its own correlation model takes :meth:`recorrelated`.
     """
 
     t_meas: float
@@ -213,10 +219,25 @@ class GlobalFix:
     n_inliers: int = 0
     rmse_m: float = 0.0
     height: FixHeight | None = None
+    source: str = ""
+    correlation_scale: float = 1.0
+    cov_relative_xy: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "rmse_m"):
             object.__setattr__(self, name, _time(f"GlobalFix.{name}", getattr(self, name)))
+        if not isinstance(self.source, str):
+            raise MeasurementError(f"GlobalFix.source must be a string, got {type(self.source).__name__}")
+        scale = _time("GlobalFix.correlation_scale", self.correlation_scale)
+        if not scale >= 1.0:
+            raise MeasurementError(f"GlobalFix.correlation_scale must be >= 1, got {scale}")
+        object.__setattr__(self, "correlation_scale", scale)
+        if self.cov_relative_xy is not None:
+            rel = _array("GlobalFix.cov_relative_xy", self.cov_relative_xy, (2, 2))
+            if np.any(np.abs(rel - rel.T) > 1e-9 * (1.0 + np.abs(rel))) or np.linalg.eigvalsh(rel)[0] < -1e-12 * (
+                    1.0 + np.trace(np.abs(rel))):
+                raise MeasurementError("GlobalFix.cov_relative_xy must be symmetric positive semi-definite")
+            object.__setattr__(self, "cov_relative_xy", rel)
         if self.t_recv < self.t_meas:
             raise MeasurementError(
                 f"GlobalFix.t_recv ({self.t_recv}) is before t_meas ({self.t_meas})"
@@ -258,6 +279,31 @@ class GlobalFix:
     def planar(self) -> GlobalFix:
         """This fix without its height."""
         return self if self.height is None else replace(self, height=None)
+
+    def split_cov(self) -> tuple[np.ndarray, np.ndarray]:
+        """(C_match, C_rel) (3, 3) each: the match's covariance before the producer's correlation
+        factor, and the rover-relative part (zero without one)."""
+        rel = np.zeros((3, 3))
+        if self.cov_relative_xy is not None:
+            rel[:2, :2] = self.cov_relative_xy
+        match = (self.cov_xyyaw - rel) / self.correlation_scale
+        return 0.5 * (match + match.T), rel
+
+    def recorrelated(self, scale: float) -> GlobalFix:
+        """This fix with its match covariance multiplied by ``scale`` (>= 1) instead of its
+        producer's ``correlation_scale``; the rover-relative part stays as it is. A height read
+        at the fix's (x, y) (``z = model(x, y)``: its covariance with them is ``C g`` for the
+        terrain gradient ``g``) follows: its covariance and variance are propagated again."""
+        if scale == self.correlation_scale:
+            return self
+        match, rel = self.split_cov()
+        cov = scale * match + rel
+        height = self.height
+        if height is not None:
+            g = np.linalg.solve(self.cov_xyyaw, height.cov_xyyaw)  # the gradient the height was read with
+            cz = cov @ g
+            height = FixHeight(height.z_m, height.var_m2 - float(g @ height.cov_xyyaw) + float(g @ cz), cz)
+        return replace(self, cov_xyyaw=cov, correlation_scale=scale, height=height)
 
 
 @dataclass(frozen=True, slots=True)

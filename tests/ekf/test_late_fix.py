@@ -213,3 +213,35 @@ def test_expected_fix_replays_from_its_own_time_with_the_same_result(run):
     n_hinted = hinted.stats().extra["n_replayed_entries"]
     assert n_hinted == len(run.steps) - k + sum(j >= k for j in run.frames)  # only what followed t_meas
     assert n_hinted < n_plain
+
+
+def _fix_gate(**kw) -> EkfConfig:
+    return EkfConfig(fix_gate=dataclasses.replace(EkfConfig().fix_gate, **kw))
+
+
+def test_the_distance_model_counts_a_repeated_fix_once_per_source_and_replays_the_same(run):
+    """fix_gate.correlation_model "distance": the same fix again at the same place is worth
+    ~1/200 of the first (its match covariance re-scaled); a fix from another source is independent;
+    late fixes applied in reverse order give the filter of the fixes on time."""
+    distance = _fix_gate(correlation_model="distance", correlation_length_m=2.5)
+    fix = dataclasses.replace(make_fix(run, 300, offset_m=(0.01, -0.01)), cov_xyyaw=np.diag([0.01**2, 0.01**2, 0.002**2]))
+    other = dataclasses.replace(fix, source="craters")
+    P = {}
+    for name, cfg, fixes in [("once", distance, [fix]), ("twice", distance, [fix, fix]),
+                             ("twice_producer", EkfConfig(), [fix, fix]), ("two_sources", distance, [fix, other]),
+                             ("two_sources_producer", EkfConfig(), [fix, other])]:
+        ekf = EkfSlam(START, cfg)
+        assert all(o.accepted for o in feed(ekf, run, {299: fixes}))
+        traj = ekf.trajectory()
+        P[name] = traj.cov[np.searchsorted(traj.t, fix.t_meas), :2, :2].trace()  # just after the fixes
+    assert P["twice"] == pytest.approx(P["once"], rel=0.02)  # the second adds ~1/200 of the information
+    assert P["twice_producer"] < 0.7 * P["once"]  # taken as independent: about half the variance
+    assert P["two_sources"] == pytest.approx(P["two_sources_producer"], rel=1e-12)
+    fa, fb = make_fix(run, 200), make_fix(run, 450, offset_m=(-0.1, 0.15))
+    on_time = EkfSlam(START, distance)
+    assert all(o.accepted for o in feed(on_time, run, {199: [fa], 449: [fb]}))
+    late = EkfSlam(START, distance)
+    feed(late, run)
+    assert late.apply_fix(dataclasses.replace(fb, t_recv=run.t[-1])).accepted
+    assert late.apply_fix(dataclasses.replace(fa, t_recv=run.t[-1])).accepted
+    assert_same(on_time, late)

@@ -10,7 +10,6 @@ from fgslam import metrics as M
 from fgslam.backends import DeadReckoning, DeadReckoningConfig, make_backend
 from fgslam.fix_sources import FedFixes, OnlineFixes, ReplayedFixes
 from fgslam.inputs import truth_of
-from fgslam.match_to_fix import distance_correlation_scale
 from fgslam.relocalizer import (
     Relocalizer,
     RelocalizerConfig,
@@ -20,6 +19,7 @@ from fgslam.relocalizer import (
 )
 from fgslam.runner import RunnerError, run_backend
 from reloc.backend import Backend, LandmarkMap, PoseEstimate
+from reloc.covariance import distance_correlation_scale
 
 
 @pytest.fixture(scope="module")
@@ -236,6 +236,9 @@ def test_fixes_are_deweighted_by_the_path_since_the_previous_one(stream):
     assert a1.status == a2.status == a3.status == "fix"
     assert np.allclose(a2.fix.cov_xyyaw, distance_correlation_scale(0.0, 2.0) * a1.fix.cov_xyyaw)
     assert np.allclose(a3.fix.cov_xyyaw, a1.fix.cov_xyyaw, rtol=1e-3)  # 40 m of path: 20 lengths
+    # each fix says what it is, so a consumer can weigh it by its own model (GlobalFix.recorrelated)
+    assert a2.fix.source == "rocks" and a2.fix.correlation_scale == pytest.approx(distance_correlation_scale(0.0, 2.0))
+    assert np.allclose(a2.fix.recorrelated(1.0).cov_xyyaw, a1.fix.cov_xyyaw)
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(RelocalizerError, match="correlation_length_m"):
             RelocalizerConfig(correlation="distance", correlation_length_m=bad)

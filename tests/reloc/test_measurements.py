@@ -41,6 +41,52 @@ def test_fix_validation():
         GlobalFix(t_meas=5.0, t_recv=6.0, x_m=0, y_m=0, yaw_rad=0, cov_xyyaw=np.zeros((3, 3)))
 
 
+def test_a_fix_recorrelated_rescales_its_match_part_only():
+    match = np.array([[0.04, 0.01, 0.001], [0.01, 0.09, -0.002], [0.001, -0.002, 0.0004]])
+    rel = np.array([[0.02, 0.005], [0.005, 0.03]])
+    cov = 6.0 * match
+    cov[:2, :2] += rel
+    fix = GlobalFix(1.0, 2.0, 3.0, 4.0, 0.5, cov, source="craters", correlation_scale=6.0, cov_relative_xy=rel)
+    assert fix.recorrelated(6.0) is fix
+    independent = fix.recorrelated(1.0)
+    expect = match.copy()
+    expect[:2, :2] += rel
+    assert np.allclose(independent.cov_xyyaw, expect) and independent.correlation_scale == 1.0
+    assert independent.source == "craters" and np.array_equal(independent.cov_relative_xy, rel)
+    back = independent.recorrelated(6.0)
+    assert np.allclose(back.cov_xyyaw, cov)
+    no_rel = GlobalFix(1.0, 2.0, 3.0, 4.0, 0.5, match, correlation_scale=2.0)
+    assert np.allclose(no_rel.recorrelated(8.0).cov_xyyaw, 4.0 * match)
+
+
+def test_a_recorrelated_fix_carries_its_height_through_the_same_gradient():
+    from reloc.measurements import FixHeight
+
+    def with_height(cov, g=np.array([0.3, -0.2, 0.0]), sigma_dem=0.1):  # z read at the fix's (x, y)
+        cz = cov @ g
+        return FixHeight(5.0, sigma_dem**2 + float(g @ cz), cz)
+
+    match = np.array([[0.04, 0.01, 0.001], [0.01, 0.09, -0.002], [0.001, -0.002, 0.0004]])
+    fix = GlobalFix(1.0, 2.0, 3.0, 4.0, 0.5, 30.0 * match, height=with_height(30.0 * match), correlation_scale=30.0)
+    again = fix.recorrelated(2.0)
+    expect = with_height(2.0 * match)
+    assert np.allclose(again.cov_xyyaw, 2.0 * match)
+    assert again.height.var_m2 == pytest.approx(expect.var_m2) and np.allclose(again.height.cov_xyyaw, expect.cov_xyyaw)
+    assert np.linalg.eigvalsh(again.cov)[0] > 0
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"correlation_scale": 0.5}, "correlation_scale must be >= 1"),
+    ({"correlation_scale": float("nan")}, "correlation_scale is NaN"),
+    ({"cov_relative_xy": np.array([[1.0, 0.0], [0.0, -1.0]])}, "cov_relative_xy must be symmetric positive semi-definite"),
+    ({"cov_relative_xy": np.eye(3)}, "cov_relative_xy"),
+    ({"source": 3}, "source must be a string"),
+])
+def test_fix_correlation_fields_are_checked(kwargs, message):
+    with pytest.raises(MeasurementError, match=message):
+        GlobalFix(1.0, 2.0, 3.0, 4.0, 0.5, np.eye(3) * 0.01, **kwargs)
+
+
 def test_sort_key_puts_motion_before_rocks():
     obs = RockObservations(1.0, np.zeros((0, 3)), np.zeros((0, 3, 3)), [], [])
     imu = ImuSample(1.0, [0, 0, 0, 1])

@@ -1,0 +1,84 @@
+"""Correlated fixes: fixes whose errors share a Gauss-Markov offset along the path, fused by the
+filter with the offset as a state (``fix_gate.correlation_model`` "bias") are consistent; taken
+as independent they make it overconfident. Odometry only (no rocks), so the fixes' errors are
+what the position error is made of."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from ekf_synth import simulate
+
+from ekf.config import EkfConfig
+from ekf.slam import EkfSlam
+from reloc.backend import PoseEstimate
+from reloc.geometry import yaw_of
+from reloc.measurements import GlobalFix
+
+L_M, SHARE = 1.0, 0.9  # correlation length of the shared error (m of path), its share of the fix's variance
+C_FIX = np.diag([0.05**2, 0.05**2, 0.01**2])
+START_COV = np.diag([0.3**2, 0.3**2, 0.01**2, 1e-4, 1e-4, 0.05**2])
+EVERY = 15  # a fix every 0.5 s (0.125 m of path)
+
+
+@pytest.fixture(scope="module")
+def run():
+    return simulate(5, duration_s=20.0, n_rocks=1)
+
+
+def _trial(run, cfg: EkfConfig, seed: int) -> np.ndarray:
+    """Final planar position error whitened by the filter's covariance, for one draw of the start
+    and the fixes' errors (shared offset first-order Gauss-Markov along the true path)."""
+    rng = np.random.default_rng(seed)
+    T0 = np.eye(4)
+    T0[:3, 3] = rng.multivariate_normal(np.zeros(3), START_COV[:3, :3])  # the start drawn from its prior
+    ekf = EkfSlam(PoseEstimate(0.0, T0, START_COV), cfg)
+    b = rng.multivariate_normal(np.zeros(3), SHARE * C_FIX)
+    last = None
+    for k, step in enumerate(run.steps, start=1):
+        ekf.predict(step)
+        if k % EVERY:
+            continue
+        p = run.truth_p[k]
+        if last is not None:  # the offset decorrelates with the path driven since the last fix
+            rho = np.exp(-np.linalg.norm(p[:2] - last[:2]) / L_M)
+            b = rho * b + rng.multivariate_normal(np.zeros(3), (1 - rho**2) * SHARE * C_FIX)
+        last = p
+        e = b + rng.multivariate_normal(np.zeros(3), (1 - SHARE) * C_FIX)
+        fix = GlobalFix(run.t[k], run.t[k], p[0] + e[0], p[1] + e[1], yaw_of(run.truth_R[k]) + e[2], C_FIX,
+                        source="rocks")
+        assert ekf.apply_fix(fix).accepted
+    est = ekf.estimate()
+    err = est.position_m[:2] - run.truth_p[-1, :2]
+    return float(err @ np.linalg.solve(est.cov[:2, :2], err))
+
+
+def _gate(**kw) -> EkfConfig:
+    return EkfConfig(yaw_rate_bias_sigma_radps=0.0,
+                     fix_gate=dataclasses.replace(EkfConfig().fix_gate, chi2=1e9, consensus_n=0, **kw))
+
+
+def test_the_shared_offset_as_a_state_is_consistent_where_independent_fixes_are_not(run):
+    n = 30
+    bias = np.mean([_trial(run, _gate(correlation_model="bias", correlation_length_m=L_M, bias_share=SHARE), s)
+                    for s in range(n)])
+    independent = np.mean([_trial(run, _gate(), s) for s in range(n)])
+    # mean of n chi2(2) draws: 95 % inside [chi2.ppf(0.025, 2n), chi2.ppf(0.975, 2n)] / n
+    assert 1.4 <= bias <= 2.75, bias
+    assert independent > 5.0, independent
+
+
+def test_a_fix_from_a_source_without_an_offset_state_is_taken_as_it_came(run):
+    cfg = _gate(correlation_model="bias", bias_sources=("craters",))
+    a, b = EkfSlam(PoseEstimate(0.0, np.eye(4), START_COV), cfg), EkfSlam(PoseEstimate(0.0, np.eye(4), START_COV), _gate())
+    assert a.full_covariance().shape[0] == b.full_covariance().shape[0] + 3  # the craters' offset
+    for ekf in (a, b):
+        for k, step in enumerate(run.steps[:60], start=1):
+            ekf.predict(step)
+        p = run.truth_p[60]
+        assert ekf.apply_fix(GlobalFix(run.t[60], run.t[60], p[0], p[1], yaw_of(run.truth_R[60]), C_FIX,
+                                       source="rocks")).accepted
+    assert np.allclose(a.estimate().cov, b.estimate().cov) and np.allclose(a.estimate().T_world_base,
+                                                                           b.estimate().T_world_base)
