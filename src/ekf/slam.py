@@ -407,6 +407,7 @@ class EkfSlam(Backend):
         if bias is not None:
             bias.propagate(s)
         s.fix_last_xy = {**s.fix_last_xy, fix.source: (float(s.p_world[0]), float(s.p_world[1]))}  # where, by the estimate
+        s.fix_last_rows = {**s.fix_last_rows, fix.source: fix.catalog_rows}
         s.P, res = joseph_update(s.P, cols, H, nu, R_fix)
         s.inject(res.dx)
         horizon = s.t - max(gate.correlation_s, 0.0) - self.config.history_s
@@ -427,6 +428,9 @@ class EkfSlam(Backend):
         last = s.fix_last_xy.get(fix.source)
         d = math.inf if last is None else math.hypot(s.p_world[0] - last[0], s.p_world[1] - last[1])
         rho = math.exp(-d / gate.correlation_length_m)
+        rows, last_rows = set(fix.catalog_rows), s.fix_last_rows.get(fix.source, ())
+        if rows and last_rows:  # the share of this fix's catalog entries that the last one used too
+            rho *= len(rows.intersection(last_rows)) / len(rows)
         match, rel = fix.split_cov()
         Q = (1.0 - rho * rho) * gate.bias_share * match
         white = (1.0 - gate.bias_share) * match + rel

@@ -62,6 +62,7 @@ class FilterState:
     n_steps_since_orthonormalise: int = 0
     fix_times: tuple = ()  # t_meas of the fixes applied to this state, oldest first
     fix_last_xy: dict = field(default_factory=dict)  # source -> the estimate's (x, y) at the last fix applied from it
+    fix_last_rows: dict = field(default_factory=dict)  # source -> the catalog entries of its last fix applied
     fix_bias_cols: dict = field(default_factory=dict)  # source -> first column of its (x, y, yaw) fix offset
     fix_bias: dict = field(default_factory=dict)  # source -> (3,) its fixes' (x, y, yaw) offset
     head: int = POSE_DIM  # states before the landmarks: the pose, then the calibration, yaw-rate bias and slip when on
@@ -133,6 +134,7 @@ class FilterState:
             n_steps_since_orthonormalise=self.n_steps_since_orthonormalise,
             fix_times=self.fix_times,
             fix_last_xy=dict(self.fix_last_xy),
+            fix_last_rows=dict(self.fix_last_rows),
             fix_bias_cols=self.fix_bias_cols,  # fixed at construction
             fix_bias={k: v.copy() for k, v in self.fix_bias.items()},
             head=self.head,

@@ -71,6 +71,7 @@ def fix_from_similarity(
     similarity_cov: np.ndarray | None = None,
     cov_scale: float = 1.0,
     relative_cov_xy: np.ndarray | None = None,
+    catalog_rows: np.ndarray | None = None,
 ) -> GlobalFix:
     """Rover fix at ``est.t`` from a local->world similarity and its inliers (K, 2) in the local (estimated world) frame.
 
@@ -121,6 +122,7 @@ def fix_from_similarity(
     return GlobalFix(
         t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
         cov_xyyaw=cov, n_inliers=n, rmse_m=float(rmse_m), correlation_scale=cov_scale, cov_relative_xy=rel,
+        catalog_rows=() if catalog_rows is None else tuple(np.asarray(catalog_rows, int).tolist()),
     )
 
 
@@ -212,7 +214,7 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
 
 def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy: np.ndarray,
                     catalog_xy: np.ndarray, cfg: RelocalizerConfig, sigma_m: float, t_recv: float,
-                    cov_scale: float = 1.0) -> GlobalFix:
+                    cov_scale: float = 1.0, catalog_row: int | None = None) -> GlobalFix:
     """Position fix at ``est.t`` from one landmark identified with a catalog entry: the rover
     moved by what puts the landmark on the entry, ``xy = xy_est + (catalog - landmark)``; the
     heading stays the estimate's with ``single_sigma_yaw_rad`` (no heading information).
@@ -232,4 +234,5 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     cov[2, 2] = cfg.single_sigma_yaw_rad ** 2
     xy = est.position_m[:2] + (np.asarray(catalog_xy, float) - np.asarray(landmark_xy, float))
     return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=float(est.yaw_rad),
-                     cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0, correlation_scale=cov_scale)
+                     cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0, correlation_scale=cov_scale,
+                     catalog_rows=() if catalog_row is None else (int(catalog_row),))

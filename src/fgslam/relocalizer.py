@@ -238,7 +238,7 @@ class Relocalizer:
                 est, rotation, translation, scale, L, rmse, cfg, t_recv=est.t + latency, map_var_m2=map_var,
                 similarity_cov=sim_cov,
                 cov_scale=self._correlation_scale(est.t, pairs[:, 1]),
-                relative_cov_xy=rel_fix,
+                relative_cov_xy=rel_fix, catalog_rows=pairs[:, 1],
             )
         except RelocalizerError as exc:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
@@ -269,7 +269,8 @@ class Relocalizer:
         l_xy, c_xy = lmap.xyz_world_m[hit.landmark, :2], self.catalog.xy_m[hit.row]
         latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_m,
-                              t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])))
+                              t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])),
+                              catalog_row=hit.row)
         self._note_fix(est.t, np.array([hit.row]))
         log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
                   hit.false_alarm)

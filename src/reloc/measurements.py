@@ -207,7 +207,8 @@ class GlobalFix:
     kind(s); ``correlation_scale`` (>= 1) is the factor the producer multiplied the match's
     covariance by for that (its correlation model), and ``cov_relative_xy`` (2, 2) the rover's
     drift from its map added after it, so ``cov_xyyaw = correlation_scale * C_match + C_rel``: a
-    consumer with its own correlation model takes :meth:`recorrelated`.
+    consumer with its own correlation model takes :meth:`recorrelated`. ``catalog_rows``: the
+    catalog entries the match used (fixes that share none share no catalog error).
     """
 
     t_meas: float
@@ -222,6 +223,7 @@ class GlobalFix:
     source: str = ""
     correlation_scale: float = 1.0
     cov_relative_xy: np.ndarray | None = None
+    catalog_rows: tuple[int, ...] = ()  # the catalog entries the match used (empty: not known)
 
     def __post_init__(self) -> None:
         for name in ("t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "rmse_m"):
@@ -232,6 +234,7 @@ class GlobalFix:
         if not scale >= 1.0:
             raise MeasurementError(f"GlobalFix.correlation_scale must be >= 1, got {scale}")
         object.__setattr__(self, "correlation_scale", scale)
+        object.__setattr__(self, "catalog_rows", tuple(sorted({int(r) for r in self.catalog_rows})))
         if self.cov_relative_xy is not None:
             rel = _array("GlobalFix.cov_relative_xy", self.cov_relative_xy, (2, 2))
             if np.any(np.abs(rel - rel.T) > 1e-9 * (1.0 + np.abs(rel))) or np.linalg.eigvalsh(rel)[0] < -1e-12 * (

@@ -82,3 +82,22 @@ def test_a_fix_from_a_source_without_an_offset_state_is_taken_as_it_came(run):
                                        source="rocks")).accepted
     assert np.allclose(a.estimate().cov, b.estimate().cov) and np.allclose(a.estimate().T_world_base,
                                                                            b.estimate().T_world_base)
+
+
+def test_fixes_on_other_catalog_entries_share_no_offset(run):
+    """Two fixes at one place: on the same catalog entries the second adds little (the offset is
+    the same), on entries the first did not use it is a new draw of the offset (a turn in place
+    brings other rocks into view)."""
+    cfg = _gate(correlation_model="bias", correlation_length_m=L_M, bias_share=SHARE)
+    p, yaw = run.truth_p[60], yaw_of(run.truth_R[60])
+    var = {}
+    for name, rows in [("once", None), ("same", (1, 2, 3)), ("other", (4, 5, 6))]:
+        ekf = EkfSlam(PoseEstimate(0.0, np.eye(4), START_COV), cfg)
+        for step in run.steps[:60]:
+            ekf.predict(step)
+        ekf.apply_fix(GlobalFix(run.t[60], run.t[60], p[0], p[1], yaw, C_FIX, source="rocks", catalog_rows=(1, 2, 3)))
+        if rows is not None:
+            ekf.apply_fix(GlobalFix(run.t[60], run.t[60], p[0], p[1], yaw, C_FIX, source="rocks", catalog_rows=rows))
+        var[name] = ekf.estimate().cov[:2, :2].trace()
+    assert var["same"] == pytest.approx(var["once"], rel=0.1)
+    assert var["other"] < 0.6 * var["once"]
