@@ -133,12 +133,13 @@ class RelocalizerConfig:
     # inside the gate (chi-square single_gate_chi2, 2 dof, of the landmark's world covariance S plus
     # the matcher's sigma_m per axis) and the odds that a chance entry lies that close rather than
     # the landmark's own (the catalog's local density of compatible sizes within
-    # single_density_radius_m, the candidate counted, over the Gaussian density N(d; 0, S) at the
+    # single_density_radius_m, the candidate counted, per m^2 of that disc inside the catalog's
+    # bounding box, over the Gaussian density N(d; 0, S) at the
     # candidate's offset d) are at most single_max_false_alarm: the bound on a wrong fix per
     # attempt. On for every kind: where the catalog is dense the bound refuses (a kilometre
     # world's rocks: the same fixes on rocky-1km's first 400 m with it as without); where it is
-    # sparse, one rock does what a constellation cannot (ERC MY2021's 39 rocks: 0 -> 64 fixes,
-    # EKF ATE 0.286 -> 0.221 m; docs/app.md)
+    # sparse and the landmark well placed, one landmark does what a constellation cannot (ERC
+    # MY2021's 23 catalogued rocks: too dense for it at 1e-3 with decimetre gates, docs/app.md)
     single_landmark: bool = True
     single_radius_m: Positive = 25.0
     single_gate_chi2: Positive = 13.82  # 99.9 % of a 2-dof chi-square

@@ -103,22 +103,24 @@ def test_single_settings_are_checked():
     assert RelocalizerConfig().single_landmark  # every kind: the bound decides
 
 
-def _rock_scene(n_catalog: int, half_m: float, seed: int = 3):
-    """A rover 0.3 m off (drift) among 4 mapped rocks, one of them catalogued, in a yard of
-    ``n_catalog`` catalogued rocks of 0.5-1.5 m over (2 half_m)^2."""
+def _rock_scene(n_catalog: int, half_m: float, seed: int = 3, rover_sigma_m: float = 0.2,
+                drift=(0.3, -0.2), rock_sigma_m: float = 0.1):
+    """A rover ``drift`` off among 4 mapped rocks (``rock_sigma_m`` each, plus the rover's), one
+    of them catalogued, in a yard of ``n_catalog`` catalogued rocks of 0.5-1.5 m over (2
+    half_m)^2; the rover's planar sigma ``rover_sigma_m``."""
     rng = np.random.default_rng(seed)
     rock = np.array([4.0, 2.0])
     others = rng.uniform(-half_m, half_m, (n_catalog - 1, 2))
     others = others[np.linalg.norm(others - rock, axis=1) > 2.0]
     cat = RockCatalog(np.vstack([rock, others]), np.concatenate([[0.9], rng.uniform(0.5, 1.5, len(others))]),
                       np.ones(len(others) + 1))
-    drift = np.array([0.3, -0.2])
+    drift = np.asarray(drift, float)
     T = np.eye(4)
     T[:2, 3] = drift
-    est = PoseEstimate(50.0, T, np.diag([0.2**2, 0.2**2, 0.01, 1e-4, 1e-4, 1e-4]))
+    est = PoseEstimate(50.0, T, np.diag([rover_sigma_m**2, rover_sigma_m**2, 0.01, 1e-4, 1e-4, 1e-4]))
     # the catalogued rock and three the catalog missed, mapped through the drift
     xy = np.vstack([rock, [[-3.0, 5.0], [6.0, -4.0], [-5.0, -5.5]]]) + drift
-    cov = np.tile(np.eye(3) * 0.1**2, (4, 1, 1))
+    cov = np.tile(np.eye(3) * rock_sigma_m**2, (4, 1, 1))
     cov[:, :2, :2] += est.cov[:2, :2]
     lmap = LandmarkMap(np.arange(4), np.column_stack([xy, np.zeros(4)]), cov, np.array([0.9, 0.6, 0.7, 0.8]),
                        np.full(4, 5), "rocks")
@@ -126,17 +128,53 @@ def _rock_scene(n_catalog: int, half_m: float, seed: int = 3):
 
 
 def test_one_rock_of_a_sparse_catalog_fixes_the_position_by_default():
-    """A yard as sparse as ERC MY2021's (23 catalogued rocks over 47 x 47 m): too few mapped rocks
-    are catalogued to match a constellation, and the one that is fixes the rover's position."""
+    """A yard sparser than ERC MY2021's (12 catalogued rocks over 47 x 47 m): too few mapped rocks
+    are catalogued to match a constellation, and the one that is fixes the rover's position when
+    the gate is tight (rover and rock known to 5 cm, 6 cm of drift). At ERC MY2021's density (23
+    rocks) with the rover at 20 cm and 36 cm off, a chance entry in the gate is likelier than the
+    bound (~0.01 per m^2 over the gate) and the rock gives no fix."""
     from fgslam.relocalizer import Relocalizer
 
-    cat, est, lmap, drift = _rock_scene(23, 23.5)
     cfg = RelocalizerConfig(min_new_observations=0, min_travel_m=0.0, min_turn_deg=0.0)
+    cat, est, lmap, drift = _rock_scene(12, 23.5, rover_sigma_m=0.05, drift=(0.05, -0.03), rock_sigma_m=0.05)
     att = Relocalizer(cat, cfg).attempt({"rocks": lmap}, est)
     assert att.status == "fix" and att.single and att.source == "rocks"
     assert np.allclose([att.fix.x_m, att.fix.y_m], est.position_m[:2] - drift, atol=1e-9)
     assert att.false_alarm <= cfg.single_max_false_alarm
     assert np.allclose(att.world_xy, [cat.xy_m[0]])
+    cat, est, lmap, _ = _rock_scene(23, 23.5)
+    att = Relocalizer(cat, cfg).attempt({"rocks": lmap}, est)
+    assert att.status == "too few landmarks" and not att.single
+
+
+def test_a_small_catalog_counts_its_density_over_its_own_extent():
+    """The chance of an entry in the gate is the catalog's density where it has entries: a 30 x
+    30 m catalog counted over the whole 200 m disc would look 140x sparser. Random local maps
+    (nowhere in the catalog) of a rover sure to 1 cm never get a single-landmark fix; before, 4 of
+    the first 12 seeds did."""
+    from fgslam.relocalizer import Relocalizer
+
+    fixes = 0
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        sizes = rng.uniform(0.3, 1.5, 40)
+        cat = RockCatalog(rng.uniform(-15, 15, (40, 2)), sizes, np.ones(40))
+        reloc = Relocalizer(cat, RelocalizerConfig(min_new_observations=0, min_travel_m=0.0, min_turn_deg=0.0))
+        xy = rng.uniform(-15, 15, (40, 2))
+        lmap = LandmarkMap(np.arange(40), np.column_stack([xy, np.zeros(40)]), np.tile(np.eye(3) * 1e-4, (40, 1, 1)),
+                           rng.permutation(sizes), np.full(40, 5), "rocks")
+        att = reloc.attempt({"rocks": lmap}, PoseEstimate(0.0, np.eye(4), np.eye(6) * 1e-4))
+        fixes += att.status == "fix"
+    assert fixes == 0
+
+
+def test_the_disc_inside_a_box():
+    from fgslam.match_to_fix import disc_box_area
+
+    assert disc_box_area((0.0, 0.0), 1.0, (-5.0, -5.0, 5.0, 5.0)) == pytest.approx(np.pi, rel=1e-3)
+    assert disc_box_area((0.0, 0.0), 1.0, (0.0, 0.0, 5.0, 5.0)) == pytest.approx(np.pi / 4, rel=1e-3)
+    assert disc_box_area((0.0, 0.0), 200.0, (-25.0, -25.0, 25.0, 25.0)) == pytest.approx(2500.0, rel=1e-3)
+    assert disc_box_area((100.0, 0.0), 1.0, (-5.0, -5.0, 5.0, 5.0)) == 0.0
 
 
 def test_one_rock_of_a_dense_catalog_is_not_identified_alone():
