@@ -129,6 +129,26 @@ def test_wrong_fix_passing_the_gate_is_retracted(short_run):
     assert d < 0.02
 
 
+def test_a_fix_with_a_height_is_retracted_against_its_own_4_dof_bound(short_run):
+    """The same wrong fix with a height is held to retract_chi2_with_height (4 dof), without one
+    to retract_chi2 (3 dof)."""
+    import dataclasses
+
+    from reloc.measurements import FixHeight
+
+    wrong = _fix_at(short_run, 30.0, 40.0, offset_xy=(6.0, 3.0))
+    z = float(short_run.gt_at(30.0)[2, 3])
+    with_height = dataclasses.replace(wrong, height=FixHeight(z, 0.05**2, np.zeros(3)))
+    for fix, planar_bound, height_bound, retracted in [
+        (with_height, 1.0, 1e9, False), (with_height, 1e9, 1.0, True), (wrong, 1.0, 1e9, True), (wrong, 1e9, 1.0, False),
+    ]:
+        cfg = SmootherConfig(fixes=FixConfig(gate_chi2=1e9, gate_distance_m=1e9, height_gate_chi2=1e9,
+                                             retract_chi2=planar_bound, retract_chi2_with_height=height_bound))
+        sm = Isam2Smoother(short_run.initial_pose, cfg)
+        out = drive(sm, short_run.measurements, [fix])
+        assert out.outcomes[0].reason.startswith("retracted") == retracted, (fix.height, out.outcomes[0].reason)
+
+
 def test_old_fixes_are_rejected_with_a_reason_and_fixed_lag_keeps_working(short_run):
     sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(fixes=FixConfig(max_age_s=20.0)))
     drive(sm, short_run.measurements[: len(short_run.measurements) * 3 // 4], [])

@@ -123,6 +123,7 @@ class FixConfig:
     gate_distance_m: Positive = 25.0  # hard gate on the position innovation
     cauchy_k: Positive = 2.0  # Cauchy kernel scale on the whitened residual
     retract_chi2: Positive = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)
+    retract_chi2_with_height: Positive = 18.47  # ... for a fix with a height (4 dof, 0.999)
     max_age_s: Positive = 60.0  # odometry history kept to place late fixes
     extra_iterations: NonNegativeInt = 1  # extra iSAM2 updates after a fix (one Gauss-Newton step each)
     window_margin_s: NonNegative = 2.0  # fixed-lag: refuse fixes this close to the window edge

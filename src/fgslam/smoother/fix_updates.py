@@ -83,15 +83,18 @@ class LateFixes:
         return FixOutcome(fix, True, "", d2)
 
     def _retract_outliers(self) -> None:
-        """Remove, worst first, fixes whose residual stays above ``retract_chi2`` after optimisation."""
+        """Remove, worst first (by residual over bound), fixes whose residual stays above
+        ``retract_chi2`` (``retract_chi2_with_height`` with a height) after optimisation."""
         cfg = self.config.fixes
         for _ in range(3):
             live = [r for r in self.fixes if r.active and self.solver.alive(r.key)]
             if not live:
                 return
             d2 = residual_d2_many(live, np.array([self.solver.pose(r.key) for r in live]))
-            worst = int(np.argmax(d2))
-            if d2[worst] <= cfg.retract_chi2:
+            # each fix against the bound of its own dof (a height adds one)
+            bound = np.array([cfg.retract_chi2 if r.fix.height is None else cfg.retract_chi2_with_height for r in live])
+            worst = int(np.argmax(d2 / bound))
+            if d2[worst] <= bound[worst]:
                 return
             rec = live[worst]
             try:
@@ -101,7 +104,7 @@ class LateFixes:
                 log.warning("could not retract fix at t=%.2f: %s", rec.fix.t_meas, exc)
                 return
             rec.active = False
-            rec.retracted_reason = f"retracted: residual d2 {d2[worst]:.1f} > {cfg.retract_chi2:.1f} after optimisation"
+            rec.retracted_reason = f"retracted: residual d2 {d2[worst]:.1f} > {bound[worst]:.1f} after optimisation"
             log.info("fix at t=%.2f %s", rec.fix.t_meas, rec.retracted_reason)
 
     def _remap_fix_factors(self, index_map: dict[int, int]) -> None:
