@@ -72,8 +72,8 @@ class FixGateConfig:
     # state: per source in bias_sources, a (x, y, yaw) offset of the catalog's fixes, first-order
     # Gauss-Markov along the distance between that source's fixes (correlation length
     # correlation_length_m), stationary covariance bias_share x the fix's match covariance; the
-    # rest of it and the rover-relative part are the fix's white noise. A fix from another source
-    # is taken as it came.
+    # rest of it and the rover-relative part are the fix's white noise (correlation_s does not
+    # apply to it). A fix from another source is taken as it came.
     correlation_model: Literal["producer", "distance", "bias"] = "producer"
     correlation_length_m: Positive = 15.0  # the fixes' error correlation measured on rocky-1km (docs/app.md)
     bias_sources: tuple[str, ...] = ("rocks", "craters")

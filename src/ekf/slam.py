@@ -113,8 +113,7 @@ class EkfSlam(Backend):
         fix_bias_cols = {}  # the fixes' shared error per source: zero until its first fix (FixGateConfig)
         if cfg.fix_gate.correlation_model == "bias":
             for src in dict.fromkeys(cfg.fix_gate.bias_sources):
-                fix_bias_cols[src] = scalar_state(True, 0.0)
-                scalar_state(True, 0.0), scalar_state(True, 0.0)
+                fix_bias_cols[src] = [scalar_state(True, 0.0) for _ in range(3)][0]  # x, y, yaw
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
