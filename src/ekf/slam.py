@@ -113,7 +113,8 @@ class EkfSlam(Backend):
         fix_bias_cols = {}  # the fixes' shared error per source: zero until its first fix (FixGateConfig)
         if cfg.fix_gate.correlation_model == "bias":
             for src in dict.fromkeys(cfg.fix_gate.bias_sources):
-                fix_bias_cols[src] = [scalar_state(True, 0.0) for _ in range(3)][0]  # x, y, yaw
+                xyyaw_cols = [scalar_state(True, 0.0) for _ in range(3)]
+                fix_bias_cols[src] = xyyaw_cols[0]
         self._s = FilterState(
             t=float(initial.t),
             t_input=float(initial.t),
@@ -424,9 +425,7 @@ class EkfSlam(Backend):
         s, gate = self._s, self.config.fix_gate
         c = s.fix_bias_cols[fix.source]
         fcols = np.arange(c, c + 3)
-        last = s.fix_last_xy.get(fix.source)
-        d = math.inf if last is None else math.hypot(s.p_world[0] - last[0], s.p_world[1] - last[1])
-        rho = math.exp(-d / gate.correlation_length_m)
+        rho = math.exp(-self._distance_since_last_fix(fix.source) / gate.correlation_length_m)
         rows, last_rows = set(fix.catalog_rows), s.fix_last_rows.get(fix.source, ())
         if rows and last_rows:  # the share of this fix's catalog entries that the last one used too
             rho *= len(rows.intersection(last_rows)) / len(rows)
@@ -440,10 +439,10 @@ class EkfSlam(Backend):
         R = np.zeros((m, m))
         R[:3, :3] = white
         if fix.height is not None:  # z read at the fix's (x, y): the offset moves it along the gradient g
-            g = np.linalg.solve(fix.cov_xyyaw, fix.height.cov_xyyaw)
+            g, var_model = fix.height_model()
             H[3, POSE_DIM:] = g
             R[3, :3] = R[:3, 3] = white @ g
-            R[3, 3] = fix.height.var_m2 - float(g @ fix.height.cov_xyyaw) + float(g @ white @ g)
+            R[3, 3] = var_model + float(g @ white @ g)
         cols = np.concatenate([np.arange(POSE_DIM), fcols])
         P_sub = s.P[np.ix_(cols, cols)].copy()
         P_sub[POSE_DIM:, :] *= rho
@@ -452,14 +451,21 @@ class EkfSlam(Backend):
         offset = H[:, POSE_DIM:] @ (rho * s.fix_bias[fix.source])  # what the propagated offset adds to h
         return _FixBias(cols, H, R, offset, P_sub, fix.source, fcols, rho, Q)
 
+    def _distance_since_last_fix(self, source: str) -> float:
+        """Planar distance (m) between the estimate now and where it was at the last fix applied
+        from ``source`` (inf before the first)."""
+        s = self._s
+        last = s.fix_last_xy.get(source)
+        return math.inf if last is None else math.hypot(s.p_world[0] - last[0], s.p_world[1] - last[1])
+
     def _fix_cov(self, fix: GlobalFix) -> np.ndarray:
         """The covariance ``fix`` is applied with: its own, or (``fix_gate.correlation_model``
         "distance") its match covariance re-scaled for its correlation with the last fix applied
-        from the same source (the distance between the estimate's positions at the two fixes), times the recent-fix factor when ``fix_gate.correlation_s`` is on."""
+        from the same source (the distance between the estimate's positions at the two fixes),
+        times the recent-fix factor when ``fix_gate.correlation_s`` is on."""
         s, gate = self._s, self.config.fix_gate
         if gate.correlation_model == "distance":
-            last = s.fix_last_xy.get(fix.source)
-            d = math.inf if last is None else math.hypot(s.p_world[0] - last[0], s.p_world[1] - last[1])
+            d = self._distance_since_last_fix(fix.source)
             fix = fix.recorrelated(distance_correlation_scale(d, gate.correlation_length_m))
         if gate.correlation_s <= 0:
             return fix.cov

@@ -72,6 +72,7 @@ def fix_from_similarity(
     cov_scale: float = 1.0,
     relative_cov_xy: np.ndarray | None = None,
     catalog_rows: np.ndarray | None = None,
+    source: str = "",
 ) -> GlobalFix:
     """Rover fix at ``est.t`` from a local->world similarity and its inliers (K, 2) in the local (estimated world) frame.
 
@@ -122,7 +123,7 @@ def fix_from_similarity(
     return GlobalFix(
         t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=yaw,
         cov_xyyaw=cov, n_inliers=n, rmse_m=float(rmse_m), correlation_scale=cov_scale, cov_relative_xy=rel,
-        catalog_rows=() if catalog_rows is None else tuple(np.asarray(catalog_rows, int).tolist()),
+        catalog_rows=() if catalog_rows is None else tuple(np.asarray(catalog_rows, int).tolist()), source=source,
     )
 
 
@@ -175,13 +176,15 @@ def _size_compatible(rows: np.ndarray, catalog_size: np.ndarray, size: float, si
 
 def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, catalog_xy: np.ndarray,
                     catalog_size: np.ndarray, tree, cfg: RelocalizerConfig, sigma_m: float,
-                    size_ratio_max: float | None) -> SingleIdentification | None:
+                    size_ratio_max: float | None, catalog_box: tuple[float, float, float, float] | None = None,
+                    ) -> SingleIdentification | None:
     """The landmark among ``idx`` (within ``cfg.single_radius_m`` of ``xy_rover``) that one
     catalog entry alone explains (see ``RelocalizerConfig.single_landmark``), the one with the
     smallest false-alarm bound; None when no landmark passes. ``tree`` is a KD-tree of
-    ``catalog_xy`` (scipy's ``cKDTree``); ``size_ratio_max`` None: no size check (the matcher's)."""
+    ``catalog_xy`` (scipy's ``cKDTree``); ``size_ratio_max`` None: no size check (the matcher's);
+    ``catalog_box`` the catalog's (xmin, ymin, xmax, ymax) (:func:`catalog_box_of`; None: computed)."""
     best: SingleIdentification | None = None
-    box = (*np.min(catalog_xy, axis=0), *np.max(catalog_xy, axis=0)) if len(catalog_xy) else (0.0, 0.0, 0.0, 0.0)
+    box = catalog_box_of(catalog_xy) if catalog_box is None else catalog_box
     for i in np.asarray(idx, dtype=int):
         l_xy = lmap.xyz_world_m[i, :2]
         if np.hypot(*(l_xy - np.asarray(xy_rover)[:2])) > cfg.single_radius_m:
@@ -215,6 +218,14 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
     return best
 
 
+def catalog_box_of(catalog_xy: np.ndarray) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of a catalog's entries (all zero for an empty one)."""
+    xy = np.asarray(catalog_xy, float).reshape(-1, 2)
+    if not len(xy):
+        return (0.0, 0.0, 0.0, 0.0)
+    return (*map(float, xy.min(axis=0)), *map(float, xy.max(axis=0)))
+
+
 def disc_box_area(center_xy, radius_m: float, box: tuple[float, float, float, float], n: int = 512) -> float:
     """Area (m^2) of the disc (``center_xy``, ``radius_m``) inside the box ``(xmin, ymin, xmax,
     ymax)``: the disc's chords clipped to the box, summed over ``n`` strips (midpoint rule, error
@@ -232,7 +243,7 @@ def disc_box_area(center_xy, radius_m: float, box: tuple[float, float, float, fl
 
 def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy: np.ndarray,
                     catalog_xy: np.ndarray, cfg: RelocalizerConfig, sigma_m: float, t_recv: float,
-                    cov_scale: float = 1.0, catalog_row: int | None = None) -> GlobalFix:
+                    cov_scale: float = 1.0, catalog_row: int | None = None, source: str = "") -> GlobalFix:
     """Position fix at ``est.t`` from one landmark identified with a catalog entry: the rover
     moved by what puts the landmark on the entry, ``xy = xy_est + (catalog - landmark)``; the
     heading stays the estimate's with ``single_sigma_yaw_rad`` (no heading information).
@@ -253,4 +264,4 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     xy = est.position_m[:2] + (np.asarray(catalog_xy, float) - np.asarray(landmark_xy, float))
     return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=float(est.yaw_rad),
                      cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0, correlation_scale=cov_scale,
-                     catalog_rows=() if catalog_row is None else (int(catalog_row),))
+                     catalog_rows=() if catalog_row is None else (int(catalog_row),), source=source)

@@ -31,6 +31,7 @@ import numpy as np
 from fgslam.backends.reanchor import is_lost
 from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
+    catalog_box_of,
     fix_from_similarity,
     fix_from_single,
     identify_single,
@@ -136,6 +137,7 @@ class Relocalizer:
         self._crops: dict[tuple[int, int, int], tuple[np.ndarray, object]] = {}  # insertion order = LRU
         self.n_crops_built = 0
         self._single_tree = None  # KD-tree of the catalog for single-landmark fixes, built at first use
+        self._single_box = None  # and the catalog's bounding box (the chance density's area)
         self.window = (LocalMapWindow(self.config.window_path_m, self.config.window_max_kept)
                        if self.config.window_path_m > 0 else None)
 
@@ -170,8 +172,6 @@ class Relocalizer:
             self._misses = 0
         elif att.status.startswith(("no match", "bad scale")):
             self._misses += 1
-        if att.fix is not None and not att.fix.source:
-            att = dataclasses.replace(att, fix=dataclasses.replace(att.fix, source=self.kinds[0]))
         return att if att.source else dataclasses.replace(att, source=self.kinds[0])
 
     def _attempt(self, lmap: LandmarkMap, est: PoseEstimate) -> FixAttempt:
@@ -238,7 +238,7 @@ class Relocalizer:
                 est, rotation, translation, scale, L, rmse, cfg, t_recv=est.t + latency, map_var_m2=map_var,
                 similarity_cov=sim_cov,
                 cov_scale=self._correlation_scale(est.t, pairs[:, 1]),
-                relative_cov_xy=rel_fix, catalog_rows=pairs[:, 1],
+                relative_cov_xy=rel_fix, catalog_rows=pairs[:, 1], source=self.kinds[0],
             )
         except RelocalizerError as exc:
             return FixAttempt(est.t, int(idx.size), f"no match ({exc})", dt, est_xyyaw=est_xyyaw)
@@ -259,10 +259,11 @@ class Relocalizer:
             from scipy.spatial import cKDTree
 
             self._single_tree = cKDTree(self.catalog.xy_m)
+            self._single_box = catalog_box_of(self.catalog.xy_m)
         mc = self._matcher_config()
         sigma_m = float(mc.sigma_m)
         hit = identify_single(lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
-                              self._single_tree, cfg, sigma_m, mc.size_ratio_max)
+                              self._single_tree, cfg, sigma_m, mc.size_ratio_max, self._single_box)
         dt = dt_match + time.perf_counter() - t0
         if hit is None:
             return None
@@ -270,7 +271,7 @@ class Relocalizer:
         latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_m,
                               t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])),
-                              catalog_row=hit.row)
+                              catalog_row=hit.row, source=self.kinds[0])
         self._note_fix(est.t, np.array([hit.row]))
         log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
                   hit.false_alarm)

@@ -292,6 +292,15 @@ class GlobalFix:
         match = (self.cov_xyyaw - rel) / self.correlation_scale
         return 0.5 * (match + match.T), rel
 
+    def height_model(self) -> tuple[np.ndarray, float]:
+        """(g (3,), var_model) of a height read at the fix's (x, y), ``z = model(x, y)``: its
+        covariance with (x, y, yaw) is ``C g`` (``g`` the terrain gradient, recovered from it) and
+        its variance ``var_model + g^T C g`` (``var_model`` the terrain model's own)."""
+        if self.height is None:
+            raise MeasurementError("GlobalFix.height_model: the fix has no height")
+        g = np.linalg.solve(self.cov_xyyaw, self.height.cov_xyyaw)
+        return g, float(self.height.var_m2 - g @ self.height.cov_xyyaw)
+
     def recorrelated(self, scale: float) -> GlobalFix:
         """This fix with its match covariance multiplied by ``scale`` (>= 1) instead of its
         producer's ``correlation_scale``; the rover-relative part stays as it is. A height read
@@ -303,9 +312,9 @@ class GlobalFix:
         cov = scale * match + rel
         height = self.height
         if height is not None:
-            g = np.linalg.solve(self.cov_xyyaw, height.cov_xyyaw)  # the gradient the height was read with
+            g, var_model = self.height_model()
             cz = cov @ g
-            height = FixHeight(height.z_m, height.var_m2 - float(g @ height.cov_xyyaw) + float(g @ cz), cz)
+            height = FixHeight(height.z_m, var_model + float(g @ cz), cz)
         return replace(self, cov_xyyaw=cov, correlation_scale=scale, height=height)
 
 
