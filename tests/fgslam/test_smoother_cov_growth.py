@@ -69,3 +69,31 @@ def test_the_shared_growth_of_a_set_of_landmarks_is_a_covariance():
         direct = cov_growth(later).reshape(k, k, 6, 6)
         found_indefinite |= np.linalg.eigvalsh(_block_matrix(direct)).min() < -1e-6
     assert found_indefinite  # the direct construction fails where the nested one holds
+
+
+def test_the_shared_pose_covariance_equals_the_block_tensor_product():
+    """The joint covariance's pose part, built as one low-rank term per nested increment, is the
+    product of the Jacobians with the (k, k, 6, 6) tensor of shared growths it replaces."""
+    from fgslam.smoother.landmarks import nested_growth, nested_increments, shared_pose_cov
+
+    rng = np.random.default_rng(1)
+    for trial in range(50):
+        times = np.sort(rng.uniform(0, 100, 5))
+        table = {}
+        for t in times:
+            A = rng.normal(size=(6, 3))
+            table[float(t)] = A @ A.T
+
+        def cov_growth(t_last):
+            return np.stack([table[float(t)] for t in t_last])
+
+        k = int(rng.integers(1, 12))
+        t_last = rng.choice(times, size=k)
+        H = rng.normal(size=(k, 3, 6))
+        B = rng.normal(size=(6, 6))
+        P = B @ B.T
+        expected = np.einsum("aip,abpq,bjq->aibj", H, P + nested_growth(t_last, cov_growth), H).reshape(3 * k, 3 * k)
+        np.testing.assert_allclose(shared_pose_cov(H, P, *nested_increments(t_last, cov_growth)), expected,
+                                   rtol=1e-10, atol=1e-10, err_msg=str(trial))
+        np.testing.assert_allclose(shared_pose_cov(H, P), np.einsum("aip,pq,bjq->aibj", H, P, H).reshape(3 * k, 3 * k),
+                                   rtol=1e-10, atol=1e-10)

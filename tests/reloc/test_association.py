@@ -168,8 +168,8 @@ def test_joint_compatibility_drops_the_same_pairs_as_the_brute_force_search():
 
     rng = np.random.default_rng(5)
     cfg = AssociationConfig()
-    for trial in range(20):
-        k = int(rng.integers(2, 12))
+    for trial in range(30):  # up to 40 pairs: many downdates in place, and fresh inverses between them
+        k = int(rng.integers(2, 12 if trial < 20 else 40))
         A = rng.normal(size=(3 * k, 3 * k)) * 0.05
         S = A @ A.T + np.eye(3 * k) * 0.01
         nu = rng.multivariate_normal(np.zeros(3 * k), S)

@@ -28,25 +28,50 @@ CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
 _VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
 
 
-def nested_growth(t_last: np.ndarray, cov_growth) -> np.ndarray:
-    """(k, k, 6, 6): the pose growth shared by landmarks ``a`` and ``b`` last seen at ``t_last``
-    (k,): the growth since the later of the two, ``cov_growth(t)`` (k,) -> (k, 6, 6), built so
-    that the block matrix is positive semi-definite. Each growth is the positive part of a
-    difference of covariances, which is not ordered in time, and the block matrix of the growths
-    themselves was indefinite after a blind spell (joint distances below zero, so any set of pairs
-    passed the joint-compatibility test). Here, from the newest time to the oldest, each adds the
-    positive part of what its growth holds beyond the sum so far: every block is at least the
-    growth it stands for, and a sum of such nested increments is a covariance."""
+def nested_increments(t_last: np.ndarray, cov_growth) -> tuple[np.ndarray, np.ndarray]:
+    """The pose growth shared by landmarks last seen at ``t_last`` (k,), as nested increments:
+    ``rank`` (k,) (0 for the newest time) and ``inc`` (R, 6, 6), so that the growth shared by
+    landmarks ``a`` and ``b`` (the growth since the later of their two times, ``cov_growth(t)``
+    (k,) -> (k, 6, 6)) is ``inc[: min(rank[a], rank[b]) + 1].sum(0)``. Each growth is the positive
+    part of a difference of covariances, which is not ordered in time, and the block matrix of the
+    growths themselves was indefinite after a blind spell (joint distances below zero, so any set
+    of pairs passed the joint-compatibility test). Here, from the newest time to the oldest, each
+    adds the positive part of what its growth holds beyond the sum so far: every block is at least
+    the growth it stands for, and a sum of such nested increments is a covariance."""
     t_last = np.asarray(t_last, dtype=float)
     times, inverse = np.unique(-t_last, return_inverse=True)  # newest first
     G = cov_growth(-times)
     acc = np.zeros((6, 6))
-    shared = np.empty_like(G)
+    inc = np.empty_like(G)
     for r in range(len(times)):
-        acc = acc + psd_part(G[r] - acc)
-        shared[r] = acc
-    rank = inverse.reshape(-1)
+        inc[r] = psd_part(G[r] - acc)
+        acc = acc + inc[r]
+    return inverse.reshape(-1), inc
+
+
+def nested_growth(t_last: np.ndarray, cov_growth) -> np.ndarray:
+    """(k, k, 6, 6): the pose growth shared by each two landmarks last seen at ``t_last`` (k,)
+    (:func:`nested_increments`, summed)."""
+    rank, inc = nested_increments(t_last, cov_growth)
+    shared = np.cumsum(inc, axis=0)
     return shared[np.minimum(rank[:, None], rank[None, :])]
+
+
+def shared_pose_cov(H: np.ndarray, P: np.ndarray, rank: np.ndarray | None = None,
+                    inc: np.ndarray | None = None) -> np.ndarray:
+    """(3k, 3k): ``H`` (k, 3, 6) times the pose covariance the k measurements share: ``P`` (6, 6)
+    common to all, plus the nested growth (:func:`nested_increments`) where given. Increment
+    ``r`` is shared by the landmarks of rank ``r`` and older, so it adds one low-rank term
+    ``J_r inc_r J_r^T`` (``J_r``: ``H`` with the newer rows zeroed): R products of (3k, 6) instead
+    of the (k, k, 6, 6) block tensor (~6 ms a frame on a kilometre traverse's 80 pairs)."""
+    J = H.reshape(-1, 6)
+    S = J @ P @ J.T
+    if inc is not None:
+        row_rank = np.repeat(rank, 3)
+        for r in range(len(inc)):
+            Jr = np.where((row_rank >= r)[:, None], J, 0.0)
+            S += Jr @ inc[r] @ Jr.T
+    return S
 
 
 @dataclass
@@ -174,14 +199,9 @@ class LandmarkStore:
                 by every landmark seen before it (the growth since the later of two last-seen
                 keyframes, and the odometry since the current keyframe, are common to both)."""
                 k = det.size
-                Hc = H[ci]
-                if grow:
-                    P_pair = cov_rel_pose + nested_growth(t_last[ci], cov_growth)
-                    S = np.einsum("aip,abpq,bjq->aibj", Hc, P_pair, Hc)
-                else:
-                    S = np.einsum("aip,pq,bjq->aibj", Hc, cov_rel_pose, Hc)
-                S[np.arange(k), :, np.arange(k), :] += S_l[ci] + R_z[det]
-                return S.reshape(3 * k, 3 * k)
+                S = shared_pose_cov(H[ci], cov_rel_pose, *(nested_increments(t_last[ci], cov_growth) if grow else ()))
+                S.reshape(k, 3, k, 3)[np.arange(k), :, np.arange(k), :] += S_l[ci] + R_z[det]
+                return S
         else:
             zhat, S_hat, sizes, joint_cov = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), None
         a = associate(z_base, R_z, zhat, S_hat, self.cfg.association, size_m, sizes, joint_cov)
