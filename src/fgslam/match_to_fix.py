@@ -210,12 +210,146 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
         near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
         n_near = len(_size_compatible(near, catalog_size, size, size_ratio_max))
         area = max(disc_box_area(l_xy, cfg.single_density_radius_m, box), np.pi * sigma_m ** 2)
-        false_alarm = n_near / area * 2.0 * np.pi * np.sqrt(det) * np.exp(0.5 * d2[k])
+        false_alarm = _chance_odds(n_near / area, S, float(d2[k]))
         if false_alarm > cfg.single_max_false_alarm:
             continue
         if best is None or false_alarm < best.false_alarm:
             best = SingleIdentification(int(i), int(rows[k]), float(d2[k]), float(false_alarm))
     return best
+
+
+@dataclass(frozen=True)
+class PairIdentification:
+    """Two mapped landmarks (indices ``landmarks`` into the map) identified together with catalog
+    rows ``rows``: ``d2`` the first's squared Mahalanobis distance in its own gate, ``d2_rel`` the
+    pair's separation against the entries', and ``false_alarm`` the odds that chance entries
+    explain both (:func:`identify_pair`)."""
+
+    landmarks: tuple[int, int]
+    rows: tuple[int, int]
+    d2: float
+    d2_rel: float
+    false_alarm: float
+
+
+def _chance_odds(rho_per_m2: float, S: np.ndarray, d2: float) -> float:
+    """The odds that a chance entry (``rho_per_m2`` of them per m^2) lies at squared Mahalanobis
+    distance ``d2`` in gate ``S`` (2, 2) rather than the landmark's own entry: rho / N(d; 0, S)."""
+    return rho_per_m2 * 2.0 * np.pi * float(np.sqrt(max(np.linalg.det(S), 0.0))) * float(np.exp(0.5 * d2))
+
+
+def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, catalog_xy: np.ndarray,
+                  catalog_size: np.ndarray, tree, cfg: RelocalizerConfig, sigma_m: float,
+                  size_ratio_max: float | None, catalog_box: tuple[float, float, float, float] | None = None,
+                  ) -> PairIdentification | None:
+    """Two landmarks among ``idx`` (within ``cfg.single_radius_m`` of ``xy_rover``) that two
+    catalog entries explain together (``RelocalizerConfig.pair_landmarks``); the pair with the
+    smallest false-alarm bound, or None.
+
+    Each landmark's candidates are the size-compatible entries inside its own gate (its world
+    covariance plus ``sigma_m`` per axis, chi-square ``single_gate_chi2``), as for one landmark;
+    a candidate pair of entries must also reproduce the landmarks' separation within the gate
+    of their relative error (the part of their world covariances not shared, ``sigma_floor_m``
+    each at least, plus both entries' ``sigma_m``), which the rover's drift does not widen. The
+    pair is identified when exactly one pair of entries passes both, and the odds that chance
+    entries explain it (a chance entry in the wider of the two own gates, times a chance entry
+    in the separation's gate, each as :func:`identify_single` counts them), times the number of
+    pairs the map offers (a union bound over them), are at most ``single_max_false_alarm``: where one rock of a sparse yard is not identifiable alone (its
+    own gate holds the rover's drift), the separation's gate is a few decimetres wide."""
+    box = catalog_box_of(catalog_xy) if catalog_box is None else catalog_box
+    xy_rover = np.asarray(xy_rover, float)[:2]
+    near_rover = [int(i) for i in np.asarray(idx, dtype=int)
+                  if np.hypot(*(lmap.xyz_world_m[i, :2] - xy_rover)) <= cfg.single_radius_m]
+    sig2 = sigma_m ** 2 * np.eye(2)
+    gates: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # landmark -> (rows, d2, chance odds per unit)
+    for i in near_rover:
+        S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sig2
+        if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
+            continue
+        l_xy, size = lmap.xyz_world_m[i, :2], float(lmap.size_m[i])
+        reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
+        rows = _size_compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int), catalog_size, size,
+                                size_ratio_max)
+        d = catalog_xy[rows] - l_xy
+        d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
+        inside = d2 <= cfg.single_gate_chi2
+        if not inside.any():
+            continue
+        near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
+        n_near = len(_size_compatible(near, catalog_size, size, size_ratio_max))
+        area = max(disc_box_area(l_xy, cfg.single_density_radius_m, box), np.pi * sigma_m ** 2)
+        gates[i] = (rows[inside], d2[inside], n_near / area)
+    best: PairIdentification | None = None
+    floor2 = cfg.sigma_floor_m ** 2 * np.eye(2)
+    n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled
+    keys = sorted(gates)
+    for a_pos, i in enumerate(keys):
+        for j in keys[a_pos + 1:]:
+            rows_i, d2_i, rho_i = gates[i]
+            rows_j, d2_j, rho_j = gates[j]
+            u = lmap.xyz_world_m[j, :2] - lmap.xyz_world_m[i, :2]
+            S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + 2.0 * (floor2 + sig2)
+            W_rel = np.linalg.inv(S_rel)
+            e = catalog_xy[rows_j][None, :, :] - catalog_xy[rows_i][:, None, :] - u  # (n_i, n_j, 2)
+            d2_rel = np.einsum("abi,ij,abj->ab", e, W_rel, e)
+            ok = (d2_rel <= cfg.single_gate_chi2) & (rows_i[:, None] != rows_j[None, :])
+            if np.count_nonzero(ok) != 1:  # nothing, or ambiguous
+                continue
+            a, b = (int(v[0]) for v in np.nonzero(ok))
+            S_i = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sig2
+            S_j = 0.5 * (lmap.cov_world_m2[j, :2, :2] + lmap.cov_world_m2[j, :2, :2].T) + sig2
+            first = max(_chance_odds(rho_i, S_i, float(d2_i[a])), _chance_odds(rho_j, S_j, float(d2_j[b])))
+            false_alarm = n_pairs * first * _chance_odds(max(rho_i, rho_j), S_rel, float(d2_rel[a, b]))
+            if false_alarm > cfg.single_max_false_alarm:
+                continue
+            if best is None or false_alarm < best.false_alarm:
+                best = PairIdentification((i, j), (int(rows_i[a]), int(rows_j[b])), float(d2_i[a]),
+                                          float(d2_rel[a, b]), float(false_alarm))
+    return best
+
+
+def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: np.ndarray, catalog_xy: np.ndarray,
+                  cfg: RelocalizerConfig, sigma_m: float, t_recv: float, cov_scale: float = 1.0,
+                  catalog_rows: tuple[int, int] | None = None, source: str = "") -> GlobalFix:
+    """Planar fix (x, y, yaw) at ``est.t`` from two landmarks ``landmarks_xy`` (2, 2, estimated
+    world) identified with catalog entries ``catalog_xy`` (2, 2): the rigid motion that puts the
+    landmarks' midpoint on the entries' and their direction on theirs, applied to the estimate.
+
+    Its covariance is the first-order image (central differences over the eight coordinates) of
+    the entries' ``sigma_m`` per axis and each landmark's error relative to the rover
+    (``relative_cov_xy`` (2, 2, 2), :func:`rover_relative_cov_xy`, never below ``sigma_floor_m``),
+    times ``inflation``^2 as a matched fix's: the heading is as good as the pair is long."""
+    L = np.asarray(landmarks_xy, float).reshape(2, 2)
+    C = np.asarray(catalog_xy, float).reshape(2, 2)
+    xy_est, yaw_est = np.asarray(est.position_m, float)[:2], float(est.yaw_rad)
+
+    def pose(p: np.ndarray) -> np.ndarray:
+        l, c = p[:4].reshape(2, 2), p[4:].reshape(2, 2)
+        u, v = l[1] - l[0], c[1] - c[0]
+        th = np.arctan2(v[1], v[0]) - np.arctan2(u[1], u[0])
+        R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        return np.r_[R @ (xy_est - l.mean(axis=0)) + c.mean(axis=0), th]
+
+    p0 = np.r_[L.ravel(), C.ravel()]
+    J = np.zeros((3, 8))
+    h = 1e-6
+    for k in range(8):
+        dp = np.zeros(8)
+        dp[k] = h
+        a, b = pose(p0 + dp), pose(p0 - dp)
+        J[:, k] = np.r_[a[:2] - b[:2], wrap_angle(a[2] - b[2])] / (2 * h)
+    P = np.zeros((8, 8))
+    for k in range(2):
+        rel = np.asarray(relative_cov_xy, float)[k]
+        w, V = np.linalg.eigh(0.5 * (rel + rel.T))
+        P[2 * k:2 * k + 2, 2 * k:2 * k + 2] = (V * np.maximum(w, cfg.sigma_floor_m ** 2)) @ V.T
+    P[4:, 4:] = sigma_m ** 2 * np.eye(4)
+    cov = cfg.inflation ** 2 * (J @ P @ J.T)
+    out = pose(p0)
+    return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(out[0]), y_m=float(out[1]),
+                     yaw_rad=float(wrap_angle(yaw_est + out[2])), cov_xyyaw=0.5 * (cov + cov.T) * cov_scale,
+                     n_inliers=2, rmse_m=0.0, correlation_scale=cov_scale,
+                     catalog_rows=() if catalog_rows is None else tuple(int(r) for r in catalog_rows), source=source)
 
 
 def catalog_box_of(catalog_xy: np.ndarray) -> tuple[float, float, float, float]:

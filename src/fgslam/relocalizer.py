@@ -33,7 +33,9 @@ from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
     catalog_box_of,
     fix_from_similarity,
+    fix_from_pair,
     fix_from_single,
+    identify_pair,
     identify_single,
     rover_relative_cov_xy,
     rover_weighted_fit,
@@ -77,8 +79,9 @@ class FixAttempt:
     ``fix`` is set for "fix". ``local_xy``/``world_xy`` (K, 2) are the matched pairs
     (local map in estimated world, catalog) for display; ``match_time_s`` is the wall time;
     ``tracked``: the match is the estimate's own pose, verified (``RelocalizerConfig.track``);
-    ``source``: the relocalizer that made it (its kinds, "+"-joined); ``single``: a position fix
-    from one identified landmark, with ``false_alarm`` its wrong-identification bound."""
+    ``source``: the relocalizer that made it (its kinds, "+"-joined); ``single``: a fix from one
+    or two landmarks identified without a constellation match, with ``false_alarm`` its
+    wrong-identification bound."""
 
     t_meas: float
     n_landmarks: int
@@ -90,7 +93,7 @@ class FixAttempt:
     est_xyyaw: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracked: bool = False
     source: str = ""
-    single: bool = False  # a position fix from one landmark identified alone (single_landmark)
+    single: bool = False  # a fix from one or two landmarks identified without a match (single_landmark, pair_landmarks)
     false_alarm: float = 0.0  # its bound: the odds that a chance catalog entry lies that close
 
 
@@ -247,10 +250,11 @@ class Relocalizer:
 
     def _single(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
                 dt_match: float) -> FixAttempt | None:
-        """A position fix from one landmark identified with a catalog entry on its own
-        (``RelocalizerConfig.single_landmark``), or None: off, lost, or no landmark passes."""
+        """A fix from two landmarks identified together (``RelocalizerConfig.pair_landmarks``),
+        else a position fix from one identified alone (``single_landmark``), or None: off, lost,
+        or no landmark passes."""
         cfg = self.config
-        if not cfg.single_landmark or idx.size == 0:
+        if not (cfg.single_landmark or cfg.pair_landmarks) or idx.size == 0:
             return None
         if is_lost(est, cfg.lost_sigma_m):
             return None  # lost: the gate would hold half the catalog
@@ -262,13 +266,27 @@ class Relocalizer:
             self._single_box = catalog_box_of(self.catalog.xy_m)
         mc = self._matcher_config()
         sigma_m = float(mc.sigma_m)
-        hit = identify_single(lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
-                              self._single_tree, cfg, sigma_m, mc.size_ratio_max, self._single_box)
+        args = (lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
+                self._single_tree, cfg, sigma_m, mc.size_ratio_max, self._single_box)
+        pair = identify_pair(*args) if cfg.pair_landmarks and idx.size >= 2 else None
+        hit = None if pair is not None or not cfg.single_landmark else identify_single(*args)
         dt = dt_match + time.perf_counter() - t0
+        latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
+        if pair is not None:
+            ids, rows = np.array(pair.landmarks), np.array(pair.rows)
+            l_xy, c_xy = lmap.xyz_world_m[ids, :2], self.catalog.xy_m[rows]
+            rel = rover_relative_cov_xy(lmap.cov_world_m2[ids, :2, :2], np.asarray(est.cov)[:2, :2])
+            fix = fix_from_pair(est, l_xy, rel, c_xy, cfg, sigma_m, t_recv=est.t + latency,
+                                cov_scale=self._correlation_scale(est.t, rows), catalog_rows=pair.rows,
+                                source=self.kinds[0])
+            self._note_fix(est.t, rows)
+            log.debug("t=%.1f s: pair %s fix, d2 %.2f / %.2f, false-alarm bound %.2e", est.t, self.kinds[0],
+                      pair.d2, pair.d2_rel, pair.false_alarm)
+            return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy, c_xy, est_xyyaw,
+                              single=True, false_alarm=pair.false_alarm)
         if hit is None:
             return None
         l_xy, c_xy = lmap.xyz_world_m[hit.landmark, :2], self.catalog.xy_m[hit.row]
-        latency = cfg.delay_s if cfg.latency == "fixed" else dt * cfg.latency_scale
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_m,
                               t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])),
                               catalog_row=hit.row, source=self.kinds[0])

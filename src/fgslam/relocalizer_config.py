@@ -141,6 +141,13 @@ class RelocalizerConfig:
     # sparse and the landmark well placed, one landmark does what a constellation cannot (ERC
     # MY2021's 23 catalogued rocks: too dense for it at 1e-3 with decimetre gates, docs/app.md)
     single_landmark: bool = True
+    # Two landmarks: before one alone, two mapped landmarks are identified together
+    # (fgslam.match_to_fix.identify_pair) with the single_* gate, radius, density and bound: each
+    # in its own gate, and the pair of entries reproducing the landmarks' separation within the
+    # gate of their relative error, which the rover's drift does not widen (a few decimetres where
+    # the own gates hold the drift of a sparse yard). The fix has a heading (as good as the pair is
+    # long). ERC MY2021: 0 fixes without it (docs/app.md)
+    pair_landmarks: bool = True
     single_radius_m: Positive = 25.0
     single_gate_chi2: Positive = 13.82  # 99.9 % of a 2-dof chi-square
     single_max_false_alarm: Annotated[float, Interval(gt=0, lt=1)] = 1e-3
