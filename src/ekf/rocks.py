@@ -43,6 +43,19 @@ def stacked_jacobian(H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
     return Hc
 
 
+def joint_innovation_cov(P: np.ndarray, h: int, cols: np.ndarray, H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
+    """``H P H^T`` (3k, 3k) of k point measurements with rows :func:`stacked_jacobian` ``(H_head
+    (k, 3, h), H_l (3, 3))`` over the head states ``[0, h)`` and the landmark columns ``cols``
+    (3k,), without forming them: the landmark part of H is block-diagonal with one block, so it
+    acts on 3-row slices (a frame of ~80 pairs: ~0.3 ms instead of the dense product's ~2 ms)."""
+    k = H_head.shape[0]
+    J = H_head.reshape(3 * k, h)
+    B = (P[:h, cols].reshape(h, k, 3) @ H_l.T).reshape(h, 3 * k)  # P_hl (I x H_l)^T
+    JB = J @ B
+    L = (H_l @ P[np.ix_(cols, cols)].reshape(k, 3, 3 * k)).reshape(3 * k, k, 3) @ H_l.T  # (I x H_l) P_ll (I x H_l)^T
+    return J @ P[:h, :h] @ J.T + JB + JB.T + L.reshape(3 * k, 3 * k)
+
+
 def calibrated_measurements(s: FilterState, z: np.ndarray, Rz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rock measurements corrected by the nominal calibration: ``z' = E^T z / s`` (N, 3) and
     ``E^T Rz E / s^2`` (N, 3, 3); unchanged without calibration states."""
@@ -153,10 +166,7 @@ class RockUpdate:
         S_hat = self._predicted_cov(s, cand, H_pose, H_l)
 
         def joint_cov(det: np.ndarray, ci: np.ndarray) -> np.ndarray:
-            rows = cand[ci]
-            idx = np.concatenate([np.arange(head), s.landmark_cols(rows)])
-            Hc = stacked_jacobian(H_pose[ci], H_l)
-            return Hc @ s.P[np.ix_(idx, idx)] @ Hc.T + block_diag3(Rz[det])
+            return joint_innovation_cov(s.P, head, s.landmark_cols(cand[ci]), H_pose[ci], H_l) + block_diag3(Rz[det])
 
         assoc = associate(z, Rz, zhat, S_hat, cfg.association, size, s.book.size_m[cand], joint_cov)
         det, ci = assoc.pairs

@@ -34,3 +34,21 @@ def test_sym_rank2_update_matches_the_dense_formula(n, m, seed):
     assert out is P
     np.testing.assert_allclose(out, P0 + K @ X.T + X @ K.T, rtol=0, atol=1e-9 * np.abs(P0).max())
     assert np.array_equal(out, out.T)
+
+
+def test_the_joint_innovation_covariance_equals_the_dense_product():
+    """The association's joint covariance of k rock pairs, built on 3-row slices, is the dense
+    ``H P H^T`` over the head and the pairs' landmark columns (in any order of the columns)."""
+    from ekf.rocks import joint_innovation_cov, stacked_jacobian
+
+    rng = np.random.default_rng(3)
+    for h, k, n in ((9, 1, 30), (12, 5, 60), (15, 40, 200)):
+        A = rng.normal(size=(n, n))
+        P = A @ A.T
+        rows = rng.choice((n - h) // 3, size=k, replace=False)  # landmarks in no particular order
+        cols = (h + 3 * rows[:, None] + np.arange(3)).reshape(-1)
+        H_head, H_l = rng.normal(size=(k, 3, h)), rng.normal(size=(3, 3))
+        idx = np.concatenate([np.arange(h), cols])
+        Hc = stacked_jacobian(H_head, H_l)
+        np.testing.assert_allclose(joint_innovation_cov(P, h, cols, H_head, H_l), Hc @ P[np.ix_(idx, idx)] @ Hc.T,
+                                   rtol=1e-10, atol=1e-9)
