@@ -261,7 +261,7 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
     near_rover = [int(i) for i in np.asarray(idx, dtype=int)
                   if np.hypot(*(lmap.xyz_world_m[i, :2] - xy_rover)) <= cfg.single_radius_m]
     sig2 = sigma_m ** 2 * np.eye(2)
-    gates: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # landmark -> (rows, d2, chance odds per unit)
+    gates: dict[int, tuple[np.ndarray, np.ndarray, float, float]] = {}  # landmark -> (rows, d2, density, odds at d2 = 0)
     for i in near_rover:
         S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sig2
         if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
@@ -278,15 +278,23 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
         near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
         n_near = len(_size_compatible(near, catalog_size, size, size_ratio_max))
         area = max(disc_box_area(l_xy, cfg.single_density_radius_m, box), np.pi * sigma_m ** 2)
-        gates[i] = (rows[inside], d2[inside], n_near / area)
+        gates[i] = (rows[inside], d2[inside], n_near / area, _chance_odds(n_near / area, S, 0.0))
     best: PairIdentification | None = None
     floor2 = cfg.sigma_floor_m ** 2 * np.eye(2)
     n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled
+    if len(gates) < 2:
+        return None
+    # the smallest bound any pair could reach (own gates at d2 = 0, the narrowest separation gate):
+    # above the limit, no pair can pass (a dense catalog: decided before the pairs are looked at)
+    rho_min = min(g[2] for g in gates.values())
+    lowest = n_pairs * min(g[3] for g in gates.values()) * _chance_odds(rho_min, 2.0 * (floor2 + sig2), 0.0)
+    if lowest > cfg.single_max_false_alarm:
+        return None
     keys = sorted(gates)
     for a_pos, i in enumerate(keys):
         for j in keys[a_pos + 1:]:
-            rows_i, d2_i, rho_i = gates[i]
-            rows_j, d2_j, rho_j = gates[j]
+            rows_i, d2_i, rho_i, _ = gates[i]
+            rows_j, d2_j, rho_j, _ = gates[j]
             u = lmap.xyz_world_m[j, :2] - lmap.xyz_world_m[i, :2]
             S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + 2.0 * (floor2 + sig2)
             W_rel = np.linalg.inv(S_rel)
