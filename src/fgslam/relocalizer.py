@@ -32,8 +32,8 @@ from fgslam.backends.reanchor import is_lost
 from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
     catalog_box_of,
-    fix_from_similarity,
     fix_from_pair,
+    fix_from_similarity,
     fix_from_single,
     identify_pair,
     identify_single,

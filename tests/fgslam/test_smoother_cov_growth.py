@@ -84,7 +84,7 @@ def test_the_shared_pose_covariance_equals_the_block_tensor_product():
             A = rng.normal(size=(6, 3))
             table[float(t)] = A @ A.T
 
-        def cov_growth(t_last):
+        def cov_growth(t_last, table=table):
             return np.stack([table[float(t)] for t in t_last])
 
         k = int(rng.integers(1, 12))
