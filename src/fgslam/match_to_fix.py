@@ -174,6 +174,37 @@ def _size_compatible(rows: np.ndarray, catalog_size: np.ndarray, size: float, si
     return rows[np.maximum(cs, size) / np.maximum(np.minimum(cs, size), 1e-9) <= size_ratio_max]
 
 
+def _own_gate(lmap: LandmarkMap, i: int, catalog_xy: np.ndarray, catalog_size: np.ndarray, tree,
+              cfg: RelocalizerConfig, sigma_m: float, size_ratio_max: float | None,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Landmark ``i``'s own gate: its planar world covariance plus ``sigma_m`` per axis ``S``
+    (2, 2), and the size-compatible catalog rows inside it (chi-square ``single_gate_chi2``) with
+    their squared Mahalanobis distances; None when ``S`` is not a covariance."""
+    S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_m ** 2 * np.eye(2)
+    if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
+        return None
+    l_xy = lmap.xyz_world_m[i, :2]
+    reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
+    rows = _size_compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int), catalog_size,
+                            float(lmap.size_m[i]), size_ratio_max)
+    d = catalog_xy[rows] - l_xy
+    d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
+    inside = d2 <= cfg.single_gate_chi2
+    return S, rows[inside], d2[inside]
+
+
+def _chance_density(lmap: LandmarkMap, i: int, catalog_size: np.ndarray, tree, cfg: RelocalizerConfig,
+                    sigma_m: float, size_ratio_max: float | None, box: tuple[float, float, float, float]) -> float:
+    """Chance entries per m^2 around landmark ``i``: the size-compatible entries within
+    ``single_density_radius_m`` (the candidate counted) over the part of that disc inside the
+    catalog's bounding box ``box`` (a small catalog, a yard's, counted over the whole disc would
+    look far sparser than it is)."""
+    l_xy = lmap.xyz_world_m[i, :2]
+    near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
+    n_near = len(_size_compatible(near, catalog_size, float(lmap.size_m[i]), size_ratio_max))
+    return n_near / max(disc_box_area(l_xy, cfg.single_density_radius_m, box), np.pi * sigma_m ** 2)
+
+
 def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, catalog_xy: np.ndarray,
                     catalog_size: np.ndarray, tree, cfg: RelocalizerConfig, sigma_m: float,
                     size_ratio_max: float | None, catalog_box: tuple[float, float, float, float] | None = None,
@@ -186,35 +217,18 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
     best: SingleIdentification | None = None
     box = catalog_box_of(catalog_xy) if catalog_box is None else catalog_box
     for i in np.asarray(idx, dtype=int):
-        l_xy = lmap.xyz_world_m[i, :2]
-        if np.hypot(*(l_xy - np.asarray(xy_rover)[:2])) > cfg.single_radius_m:
+        if np.hypot(*(lmap.xyz_world_m[i, :2] - np.asarray(xy_rover)[:2])) > cfg.single_radius_m:
             continue
-        S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_m ** 2 * np.eye(2)
-        det = float(np.linalg.det(S))
-        if not np.isfinite(det) or det <= 0.0:
+        gate = _own_gate(lmap, int(i), catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
+        if gate is None or len(gate[1]) != 1:  # nothing there, or ambiguous
             continue
-        size = float(lmap.size_m[i])
-        reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
-        rows = _size_compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int), catalog_size, size,
-                                size_ratio_max)
-        d = catalog_xy[rows] - l_xy
-        d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
-        inside = d2 <= cfg.single_gate_chi2
-        if np.count_nonzero(inside) != 1:  # nothing there, or ambiguous
-            continue
-        k = int(np.flatnonzero(inside)[0])
-        # chance entries (their density, the candidate counted) against the landmark's own
-        # density at the candidate: rho / N(d; 0, S)
-        # the density over the part of the disc that the catalog covers (its bounding box): a
-        # small catalog (a yard's) counted over the whole disc would look far sparser than it is
-        near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
-        n_near = len(_size_compatible(near, catalog_size, size, size_ratio_max))
-        area = max(disc_box_area(l_xy, cfg.single_density_radius_m, box), np.pi * sigma_m ** 2)
-        false_alarm = _chance_odds(n_near / area, S, float(d2[k]))
+        S, rows, d2 = gate
+        rho = _chance_density(lmap, int(i), catalog_size, tree, cfg, sigma_m, size_ratio_max, box)
+        false_alarm = _chance_odds(rho, S, float(d2[0]))
         if false_alarm > cfg.single_max_false_alarm:
             continue
         if best is None or false_alarm < best.false_alarm:
-            best = SingleIdentification(int(i), int(rows[k]), float(d2[k]), float(false_alarm))
+            best = SingleIdentification(int(i), int(rows[0]), float(d2[0]), float(false_alarm))
     return best
 
 
@@ -261,24 +275,14 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
     near_rover = [int(i) for i in np.asarray(idx, dtype=int)
                   if np.hypot(*(lmap.xyz_world_m[i, :2] - xy_rover)) <= cfg.single_radius_m]
     sig2 = sigma_m ** 2 * np.eye(2)
-    gates: dict[int, tuple[np.ndarray, np.ndarray, float, float]] = {}  # landmark -> (rows, d2, density, odds at d2 = 0)
+    gates: dict[int, tuple] = {}  # landmark -> (rows, d2, density, odds at d2 = 0, own gate S)
     for i in near_rover:
-        S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sig2
-        if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
+        gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
+        if gate is None or not len(gate[1]):
             continue
-        l_xy, size = lmap.xyz_world_m[i, :2], float(lmap.size_m[i])
-        reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
-        rows = _size_compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int), catalog_size, size,
-                                size_ratio_max)
-        d = catalog_xy[rows] - l_xy
-        d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
-        inside = d2 <= cfg.single_gate_chi2
-        if not inside.any():
-            continue
-        near = np.asarray(tree.query_ball_point(l_xy, cfg.single_density_radius_m), dtype=int)
-        n_near = len(_size_compatible(near, catalog_size, size, size_ratio_max))
-        area = max(disc_box_area(l_xy, cfg.single_density_radius_m, box), np.pi * sigma_m ** 2)
-        gates[i] = (rows[inside], d2[inside], n_near / area, _chance_odds(n_near / area, S, 0.0))
+        S, rows, d2 = gate
+        rho = _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box)
+        gates[i] = (rows, d2, rho, _chance_odds(rho, S, 0.0), S)
     best: PairIdentification | None = None
     floor2 = cfg.sigma_floor_m ** 2 * np.eye(2)
     n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled
@@ -293,8 +297,8 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
     keys = sorted(gates)
     for a_pos, i in enumerate(keys):
         for j in keys[a_pos + 1:]:
-            rows_i, d2_i, rho_i, _ = gates[i]
-            rows_j, d2_j, rho_j, _ = gates[j]
+            rows_i, d2_i, rho_i, _, S_i = gates[i]
+            rows_j, d2_j, rho_j, _, S_j = gates[j]
             u = lmap.xyz_world_m[j, :2] - lmap.xyz_world_m[i, :2]
             S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + 2.0 * (floor2 + sig2)
             W_rel = np.linalg.inv(S_rel)
@@ -304,8 +308,6 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
             if np.count_nonzero(ok) != 1:  # nothing, or ambiguous
                 continue
             a, b = (int(v[0]) for v in np.nonzero(ok))
-            S_i = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sig2
-            S_j = 0.5 * (lmap.cov_world_m2[j, :2, :2] + lmap.cov_world_m2[j, :2, :2].T) + sig2
             first = max(_chance_odds(rho_i, S_i, float(d2_i[a])), _chance_odds(rho_j, S_j, float(d2_j[b])))
             false_alarm = n_pairs * first * _chance_odds(max(rho_i, rho_j), S_rel, float(d2_rel[a, b]))
             if false_alarm > cfg.single_max_false_alarm:
