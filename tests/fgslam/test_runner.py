@@ -309,6 +309,27 @@ def test_cropped_catalog_gives_the_whole_catalog_fix(stream):
     assert all(tuple(p) in cat for p in np.round(out[True].world_xy, 9))
 
 
+def test_a_coarse_crop_hash_for_a_wide_matcher_sigma_gives_the_same_fix(stream, monkeypatch):
+    """At a wide matcher sigma (0.4 m here, 0.5 m on the kilometre worlds) the crops are hashed with
+    bins of half the side tolerance instead of 0.08 m (a query walks a few dozen bins, not
+    hundreds): the same candidates reach the exact side test, and the attempt gives the fix the
+    fine hash gives."""
+    be = make_backend("dr", stream.initial)
+    run_backend(be, stream.measurements[: len(stream.measurements) // 2])
+    lmap, est = be.landmark_map("rocks"), be.estimate()
+    sigma = 0.4
+    cfg = RelocalizerConfig(min_landmarks=5, min_new_observations=0, matcher={"sigma_m": sigma})
+    coarse = Relocalizer(stream.catalog, cfg)
+    assert coarse._hash_bin_m() == pytest.approx(0.5 * np.sqrt(2.0) * sigma)
+    a = coarse.attempt(lmap, est)
+    monkeypatch.setattr(Relocalizer, "_hash_bin_m", lambda self: 0.08)
+    b = Relocalizer(stream.catalog, cfg).attempt(lmap, est)
+    assert a.status == b.status == "fix"
+    assert np.allclose(a.fix.xyyaw, b.fix.xyyaw) and np.allclose(a.fix.cov_xyyaw, b.fix.cov_xyyaw)
+    assert a.fix.catalog_rows == b.fix.catalog_rows
+    assert Relocalizer(stream.catalog, RelocalizerConfig())._hash_bin_m() == pytest.approx(0.08)  # a yard's sigma
+
+
 def test_runner_config_is_checked():
     from fgslam.runner import RunnerConfig
 
