@@ -9,6 +9,7 @@ global (x, y, yaw): ``xy = s R xy_est + t``, ``yaw = yaw_est + theta``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,6 +18,7 @@ from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.covariance import psd_part
 from reloc.geometry import wrap_angle
 from reloc.measurements import GlobalFix
+from reloc.procrustes import rotation_2d
 
 
 def select_local_map(lmap: LandmarkMap, xy_rover: np.ndarray, cfg: RelocalizerConfig,
@@ -174,6 +176,21 @@ def _size_compatible(rows: np.ndarray, catalog_size: np.ndarray, size: float, si
     return rows[np.maximum(cs, size) / np.maximum(np.minimum(cs, size), 1e-9) <= size_ratio_max]
 
 
+def _within(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, radius_m: float) -> list[int]:
+    """The landmarks of ``idx`` within ``radius_m`` of the rover's planar position ``xy_rover``."""
+    xy_rover = np.asarray(xy_rover, float)[:2]
+    return [int(i) for i in np.asarray(idx, dtype=int) if np.hypot(*(lmap.xyz_world_m[i, :2] - xy_rover)) <= radius_m]
+
+
+class _Gate(NamedTuple):
+    """A landmark's own gate (:func:`_own_gate`) with the chance density around it."""
+
+    rows: np.ndarray
+    d2: np.ndarray
+    rho: float
+    S: np.ndarray
+
+
 def _own_gate(lmap: LandmarkMap, i: int, catalog_xy: np.ndarray, catalog_size: np.ndarray, tree,
               cfg: RelocalizerConfig, sigma_m: float, size_ratio_max: float | None,
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -216,14 +233,12 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
     ``catalog_box`` the catalog's (xmin, ymin, xmax, ymax) (:func:`catalog_box_of`; None: computed)."""
     best: SingleIdentification | None = None
     box = catalog_box_of(catalog_xy) if catalog_box is None else catalog_box
-    for i in np.asarray(idx, dtype=int):
-        if np.hypot(*(lmap.xyz_world_m[i, :2] - np.asarray(xy_rover)[:2])) > cfg.single_radius_m:
-            continue
-        gate = _own_gate(lmap, int(i), catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
+    for i in _within(lmap, idx, xy_rover, cfg.single_radius_m):
+        gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
         if gate is None or len(gate[1]) != 1:  # nothing there, or ambiguous
             continue
         S, rows, d2 = gate
-        rho = _chance_density(lmap, int(i), catalog_size, tree, cfg, sigma_m, size_ratio_max, box)
+        rho = _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box)
         false_alarm = _chance_odds(rho, S, float(d2[0]))
         if false_alarm > cfg.single_max_false_alarm:
             continue
@@ -268,52 +283,47 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
     pair is identified when exactly one pair of entries passes both, and the odds that chance
     entries explain it (a chance entry in the wider of the two own gates, times a chance entry
     in the separation's gate, each as :func:`identify_single` counts them), times the number of
-    pairs the map offers (a union bound over them), are at most ``single_max_false_alarm``: where one rock of a sparse yard is not identifiable alone (its
-    own gate holds the rover's drift), the separation's gate is a few decimetres wide."""
+    pairs the map offers (a union bound over them), are at most ``single_max_false_alarm``: where
+    one rock of a sparse yard is not identifiable alone (its own gate holds the rover's drift),
+    the separation's gate is a few decimetres wide."""
     box = catalog_box_of(catalog_xy) if catalog_box is None else catalog_box
-    xy_rover = np.asarray(xy_rover, float)[:2]
-    near_rover = [int(i) for i in np.asarray(idx, dtype=int)
-                  if np.hypot(*(lmap.xyz_world_m[i, :2] - xy_rover)) <= cfg.single_radius_m]
-    sig2 = sigma_m ** 2 * np.eye(2)
-    gates: dict[int, tuple] = {}  # landmark -> (rows, d2, density, odds at d2 = 0, own gate S)
+    near_rover = _within(lmap, idx, xy_rover, cfg.single_radius_m)
+    gates: dict[int, _Gate] = {}
     for i in near_rover:
         gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
-        if gate is None or not len(gate[1]):
-            continue
-        S, rows, d2 = gate
-        rho = _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box)
-        gates[i] = (rows, d2, rho, _chance_odds(rho, S, 0.0), S)
-    best: PairIdentification | None = None
-    floor2 = cfg.sigma_floor_m ** 2 * np.eye(2)
-    n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled
+        if gate is not None and len(gate[1]):
+            S, rows, d2 = gate
+            gates[i] = _Gate(rows, d2, _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box), S)
     if len(gates) < 2:
         return None
+    n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled
+    white2 = 2.0 * (cfg.sigma_floor_m ** 2 + sigma_m ** 2) * np.eye(2)  # the separation's gate at its narrowest
     # the smallest bound any pair could reach (own gates at d2 = 0, the narrowest separation gate):
     # above the limit, no pair can pass (a dense catalog: decided before the pairs are looked at)
-    rho_min = min(g[2] for g in gates.values())
-    lowest = n_pairs * min(g[3] for g in gates.values()) * _chance_odds(rho_min, 2.0 * (floor2 + sig2), 0.0)
+    lowest = (n_pairs * min(_chance_odds(g.rho, g.S, 0.0) for g in gates.values())
+              * _chance_odds(min(g.rho for g in gates.values()), white2, 0.0))
     if lowest > cfg.single_max_false_alarm:
         return None
+    best: PairIdentification | None = None
     keys = sorted(gates)
     for a_pos, i in enumerate(keys):
         for j in keys[a_pos + 1:]:
-            rows_i, d2_i, rho_i, _, S_i = gates[i]
-            rows_j, d2_j, rho_j, _, S_j = gates[j]
+            gi, gj = gates[i], gates[j]
             u = lmap.xyz_world_m[j, :2] - lmap.xyz_world_m[i, :2]
-            S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + 2.0 * (floor2 + sig2)
+            S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + white2
             W_rel = np.linalg.inv(S_rel)
-            e = catalog_xy[rows_j][None, :, :] - catalog_xy[rows_i][:, None, :] - u  # (n_i, n_j, 2)
+            e = catalog_xy[gj.rows][None, :, :] - catalog_xy[gi.rows][:, None, :] - u  # (n_i, n_j, 2)
             d2_rel = np.einsum("abi,ij,abj->ab", e, W_rel, e)
-            ok = (d2_rel <= cfg.single_gate_chi2) & (rows_i[:, None] != rows_j[None, :])
+            ok = (d2_rel <= cfg.single_gate_chi2) & (gi.rows[:, None] != gj.rows[None, :])
             if np.count_nonzero(ok) != 1:  # nothing, or ambiguous
                 continue
             a, b = (int(v[0]) for v in np.nonzero(ok))
-            first = max(_chance_odds(rho_i, S_i, float(d2_i[a])), _chance_odds(rho_j, S_j, float(d2_j[b])))
-            false_alarm = n_pairs * first * _chance_odds(max(rho_i, rho_j), S_rel, float(d2_rel[a, b]))
+            first = max(_chance_odds(gi.rho, gi.S, float(gi.d2[a])), _chance_odds(gj.rho, gj.S, float(gj.d2[b])))
+            false_alarm = n_pairs * first * _chance_odds(max(gi.rho, gj.rho), S_rel, float(d2_rel[a, b]))
             if false_alarm > cfg.single_max_false_alarm:
                 continue
             if best is None or false_alarm < best.false_alarm:
-                best = PairIdentification((i, j), (int(rows_i[a]), int(rows_j[b])), float(d2_i[a]),
+                best = PairIdentification((i, j), (int(gi.rows[a]), int(gj.rows[b])), float(gi.d2[a]),
                                           float(d2_rel[a, b]), float(false_alarm))
     return best
 
@@ -337,8 +347,7 @@ def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: 
         l, c = p[:4].reshape(2, 2), p[4:].reshape(2, 2)
         u, v = l[1] - l[0], c[1] - c[0]
         th = np.arctan2(v[1], v[0]) - np.arctan2(u[1], u[0])
-        R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-        return np.r_[R @ (xy_est - l.mean(axis=0)) + c.mean(axis=0), th]
+        return np.r_[rotation_2d(th) @ (xy_est - l.mean(axis=0)) + c.mean(axis=0), th]
 
     p0 = np.r_[L.ravel(), C.ravel()]
     J = np.zeros((3, 8))
@@ -350,9 +359,7 @@ def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: 
         J[:, k] = np.r_[a[:2] - b[:2], wrap_angle(a[2] - b[2])] / (2 * h)
     P = np.zeros((8, 8))
     for k in range(2):
-        rel = np.asarray(relative_cov_xy, float)[k]
-        w, V = np.linalg.eigh(0.5 * (rel + rel.T))
-        P[2 * k:2 * k + 2, 2 * k:2 * k + 2] = (V * np.maximum(w, cfg.sigma_floor_m ** 2)) @ V.T
+        P[2 * k:2 * k + 2, 2 * k:2 * k + 2] = psd_part(np.asarray(relative_cov_xy, float)[k], cfg.sigma_floor_m ** 2)
     P[4:, 4:] = sigma_m ** 2 * np.eye(4)
     cov = cfg.inflation ** 2 * (J @ P @ J.T)
     out = pose(p0)

@@ -193,7 +193,7 @@ class Relocalizer:
             usable = np.linalg.eigvalsh(rel)[:, -1] <= (cfg.max_relative_sigmas * self._matcher_config().sigma_m) ** 2
         idx = select_local_map(lmap, est.position_m, cfg, self.min_size_m, usable)
         if idx.size < cfg.min_landmarks:
-            single = self._single(lmap, idx, est, est_xyyaw, 0.0)
+            single = self._identify(lmap, idx, est, est_xyyaw, 0.0)
             return single or FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
         local_xy = lmap.xyz_world_m[idx, :2]
         t0 = time.perf_counter()
@@ -214,7 +214,7 @@ class Relocalizer:
             result = self.matcher.match(local_xy, lmap.size_m[idx], prior)
         dt = time.perf_counter() - t0
         if result is None:
-            single = self._single(lmap, idx, est, est_xyyaw, dt)
+            single = self._identify(lmap, idx, est, est_xyyaw, dt)
             return single or FixAttempt(est.t, int(idx.size), "no match", dt, est_xyyaw=est_xyyaw)
         if abs(float(result.scale) - 1.0) > cfg.max_scale_error:
             log.info("t=%.1f s: match rejected, scale %.3f", est.t, result.scale)
@@ -248,8 +248,8 @@ class Relocalizer:
         self._note_fix(est.t, pairs[:, 1])
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
 
-    def _single(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
-                dt_match: float) -> FixAttempt | None:
+    def _identify(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
+                  dt_match: float) -> FixAttempt | None:
         """A fix from two landmarks identified together (``RelocalizerConfig.pair_landmarks``),
         else a position fix from one identified alone (``single_landmark``), or None: off, lost,
         or no landmark passes."""
