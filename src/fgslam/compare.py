@@ -30,6 +30,7 @@ from fgslam.long_traverse import (
     check_window,
     evaluation_truth,
     is_long,
+    per_world_keys,
     runner_config_for,
 )
 from fgslam.passes import Pass, run_passes
@@ -104,12 +105,23 @@ DR_OVERRIDES = {"build_map": False}  # the odometry-only pass needs no map
 
 def resolved_compare_config(cfg: CompareConfig) -> dict:
     """``cfg`` as a plain dict with each compared back-end's *resolved* config (every value) in
-    ``backend_overrides``, so the saved file reproduces the run when given back as overrides."""
+    ``backend_overrides``, so the saved file reproduces the run when given back as overrides.
+
+    Less the settings the long-traverse rule decides per world (:func:`fgslam.long_traverse.per_world_keys`:
+    iSAM2's window, the EKF's forgetting), unless ``cfg`` set them: written out as the back-end's
+    default (iSAM2 ``fixed_lag_s: 0``) they would be explicit when given back and win over the
+    rule, turning a kilometre world's fixed-lag smoother into a full-history one. The values each
+    world ran with are in results.json (``backend_overrides`` per world)."""
     from fgslam.backends.registry import resolved_config
     from reloc.config import config_to_dict
 
     out = config_to_dict(cfg)
-    out["backend_overrides"] = {name: resolved_config(name, cfg.backend_overrides.get(name)) for name in cfg.backends}
+    out["backend_overrides"] = {}
+    for name in cfg.backends:
+        given = cfg.backend_overrides.get(name) or {}
+        resolved = resolved_config(name, given)
+        out["backend_overrides"][name] = {k: v for k, v in resolved.items()
+                                          if k in given or k not in per_world_keys(name)}
     return out
 
 

@@ -119,16 +119,28 @@ def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: floa
             f"latency {worst_latency_s:g} s plus the window margin {margin_s:g} s: fixes would be lost to the window")
 
 
+def _long_settings(name: str, cfg: LongTraverseConfig) -> dict:
+    """What back-end ``name`` gets on a long traverse (empty for one that gets nothing)."""
+    return {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s, "calibration_mode": cfg.isam2_calibration_mode},
+            "ekf": {"forget_distance_m": cfg.ekf_forget_distance_m,
+                    "trajectory_period_s": cfg.ekf_trajectory_period_s,
+                    "keep_seen_s": cfg.ekf_keep_seen_s}}.get(name, {})
+
+
+def per_world_keys(name: str) -> frozenset[str]:
+    """The settings of back-end ``name`` that :func:`backend_overrides_for` decides per stream
+    (a comparison's worlds may be long or short): a saved config that wrote them out as explicit
+    values would take them from the long-traverse rule when given back."""
+    return frozenset(_long_settings(name, LongTraverseConfig()))
+
+
 def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
                           cfg: LongTraverseConfig) -> dict | None:
     """The overrides back-end ``name`` runs with on a stream of ``duration_s``: on a long
     traverse iSAM2 gets ``fixed_lag_s`` and ``calibration_mode`` and the EKF ``forget_distance_m``,
     ``trajectory_period_s`` and ``keep_seen_s``, each unless the overrides set it; otherwise unchanged."""
-    defaults = {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s, "calibration_mode": cfg.isam2_calibration_mode},
-                "ekf": {"forget_distance_m": cfg.ekf_forget_distance_m,
-                        "trajectory_period_s": cfg.ekf_trajectory_period_s,
-                        "keep_seen_s": cfg.ekf_keep_seen_s}}.get(name)
-    if defaults is None or not is_long(duration_s, cfg):
+    defaults = _long_settings(name, cfg)
+    if not defaults or not is_long(duration_s, cfg):
         return overrides
     add = {k: v for k, v in defaults.items() if not (overrides and k in overrides)}
     return {**(overrides or {}), **add} if add else overrides

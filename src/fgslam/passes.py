@@ -130,6 +130,11 @@ def _worker(p: Pass, fixes) -> tuple[str, RunResult]:
     return p.key, _execute(_STATE, p, fixes, cb)
 
 
+def by_cost(passes: list[Pass]) -> list[Pass]:
+    """``passes`` costliest first by their back-end's ``relative_cost`` (stable among equals)."""
+    return sorted(passes, key=lambda p: -float(getattr(backend_class(p.backend), "relative_cost", 1.0)))
+
+
 def run_passes(
     inputs, passes: list[Pass], runner_cfg: RunnerConfig, relocalizers: list[FixProducer],
     fixes_of: Callable[[RunResult], list], workers: int = 1,
@@ -176,9 +181,11 @@ def _run_forked(online, wave1, wave2, fixes_of, workers, on_progress) -> dict[st
     pool = ProcessPoolExecutor(max_workers=workers + len(wave2), mp_context=ctx,
                                initializer=worker_initializer, initargs=(os.getpid(),))
     try:
-        # FIFO: the reference pass starts first, the replays next (they stream its fixes),
-        # then the passes without relocalization; the first submit forks every worker
-        order = online + wave2 + [p for p in wave1 if p.mode == "none"]
+        # FIFO: the reference pass starts first, the replays next (they stream its fixes), then
+        # the passes without relocalization, the costliest first (longest processing time
+        # first: a long pass started last would run alone at the end); the first submit forks
+        # every worker
+        order = online + wave2 + by_cost([p for p in wave1 if p.mode == "none"])
         with signals_deferred():
             futures: dict[Future, Pass] = {pool.submit(_worker, p, None): p for p in order}
         while futures:

@@ -158,6 +158,10 @@ class Backend(Protocol):
 
     name: str
     config: Any
+    # CPU a pass of this back-end takes relative to the EKF's on the same stream (the demo's
+    # rocky-1km: dead reckoning 0.3, iSAM2 fixed-lag 2); only orders a comparison's passes
+    # (longest first, so that no long pass starts last and runs alone), never changes a result
+    relative_cost: float = 1.0
 
     def predict(self, step: OdometryStep) -> None:
         """Propagate with one odometry step (command velocity + IMU orientation increment)."""

@@ -177,3 +177,31 @@ def test_draw_start_moves_every_pass_start_by_the_seeded_draw():
     assert np.linalg.norm(drawn[:3, 3] - inputs.initial.T_world_base[:3, 3]) > 1e-4
     np.testing.assert_allclose(first[:3, 3], drawn[:3, 3], atol=1e-9)
     np.testing.assert_allclose(first[:3, :3], drawn[:3, :3], atol=1e-9)
+
+
+@pytest.mark.parametrize("given", [{}, {"isam2": {"fixed_lag_s": 0.0}, "ekf": {"keep_seen_s": 0.5}}])
+def test_a_saved_comparison_config_given_back_runs_every_world_as_before(tmp_path, given):
+    """The saved config writes every back-end value out but those the long-traverse rule decides
+    per world: given back, a kilometre world still gets iSAM2's fixed-lag window and the EKF's
+    forgetting (a written-out ``fixed_lag_s: 0`` made it a full-history smoother), a yard none,
+    and what the user set explicitly stays set."""
+    import yaml
+
+    from fgslam.cli.cmd_run import load_config
+    from fgslam.compare import CompareConfig, resolved_compare_config
+    from fgslam.backends.registry import backend_config, resolved_config
+    from fgslam.long_traverse import backend_overrides_for
+
+    cfg = CompareConfig(backend_overrides=given)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump({"config": resolved_compare_config(cfg)}, sort_keys=False))
+    back = load_config(path)
+    lt = cfg.long_traverse
+    for span in (600.0, 2 * lt.min_duration_s):
+        for name in ("isam2", "ekf"):
+            before = resolved_config(name, backend_overrides_for(name, cfg.backend_overrides.get(name), span, lt))
+            after = resolved_config(name, backend_overrides_for(name, back.backend_overrides.get(name), span, lt))
+            assert after == before, (name, span)
+    long_isam2 = backend_config("isam2", backend_overrides_for("isam2", back.backend_overrides.get("isam2"),
+                                                                2 * lt.min_duration_s, lt))
+    assert long_isam2.fixed_lag_s == (0.0 if given else lt.isam2_fixed_lag_s)

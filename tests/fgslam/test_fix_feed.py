@@ -38,3 +38,16 @@ def test_feed_reports_a_failed_reference_pass():
     q.put(("error", "SmootherError: indeterminant system"))
     with pytest.raises(FixFeedError, match="indeterminant"):
         QueueFixFeed(q, timeout_s=1.0).until(1.0)
+
+
+def test_passes_without_fixes_are_started_costliest_first():
+    """Longest processing time first: the smoother's pass before the EKF's before dead reckoning,
+    equal costs in their given order (the order only schedules, results do not depend on it)."""
+    from fgslam.backends.registry import backend_class
+    from fgslam.passes import Pass, by_cost
+
+    ps = [Pass("dr", "dr", None, "none", "dr"), Pass("ekf", "ekf", None, "none", "ekf"),
+          Pass("isam2", "isam2", None, "none", "isam2"), Pass("ekf2", "ekf", None, "none", "ekf2")]
+    assert [p.key for p in by_cost(ps)] == ["isam2", "ekf", "ekf2", "dr"]
+    costs = [backend_class(n).relative_cost for n in ("isam2", "ekf", "dr")]
+    assert costs == sorted(costs, reverse=True) and costs[1] == 1.0

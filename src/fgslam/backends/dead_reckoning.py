@@ -69,6 +69,7 @@ class DeadReckoning(Backend):
     """Odometry-only back-end (see module doc); ``name`` is "dr"."""
 
     name = "dr"
+    relative_cost = 0.3  # the demo: 24 s against the EKF's 77 s
 
     def __init__(self, initial: PoseEstimate, config: DeadReckoningConfig | None = None) -> None:
         self.config = config or DeadReckoningConfig()
