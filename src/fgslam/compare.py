@@ -21,7 +21,6 @@ import numpy as np
 from fgslam import metrics as M
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixProducer, relocalizers_for
-from fgslam.terrain_height import TerrainHeightConfig, with_heights
 from fgslam.inputs import RunInputs
 from fgslam.io.image_rocks import ImageInputConfig
 from fgslam.long_traverse import (
@@ -36,6 +35,7 @@ from fgslam.long_traverse import (
 from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
+from fgslam.terrain_height import TerrainHeightConfig, with_heights
 from reloc.backend import Trajectory
 from reloc.config import Positive, PositiveInt, checked
 

@@ -187,9 +187,9 @@ def test_a_saved_comparison_config_given_back_runs_every_world_as_before(tmp_pat
     and what the user set explicitly stays set."""
     import yaml
 
+    from fgslam.backends.registry import backend_config, resolved_config
     from fgslam.cli.cmd_run import load_config
     from fgslam.compare import CompareConfig, resolved_compare_config
-    from fgslam.backends.registry import backend_config, resolved_config
     from fgslam.long_traverse import backend_overrides_for
 
     cfg = CompareConfig(backend_overrides=given)
