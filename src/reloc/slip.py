@@ -128,18 +128,15 @@ def visual_translation(
         return None
     q = p_cur @ R_ref_cur.T
     cq = R_ref_cur @ np.asarray(cov_cur, dtype=float) @ R_ref_cur.T
-    D = (p_ref[:, None, :] - q[None, :, :]).reshape(-1, 3)
-    ii, jj = np.divmod(np.arange(D.shape[0]), len(q))
     # search region: the segment from standing still to the wheels' translation, widened
     if region is None:
         centre = 0.5 * np.asarray(d_wheel, dtype=float)
         radius = float(np.linalg.norm(centre)) + cfg.search_margin_m
     else:
         centre, radius = np.asarray(region[0], dtype=float), float(region[1])
-    keep = np.linalg.norm(D - centre, axis=1) <= radius
-    if keep.sum() < cfg.min_inliers:
+    D, ii, jj = _pairs_in_region(p_ref, q, centre, radius)
+    if ii.size < cfg.min_inliers:
         return None
-    D, ii, jj = D[keep], ii[keep], jj[keep]
     var = (np.trace(cov_ref, axis1=1, axis2=2)[ii] + np.trace(cq, axis1=1, axis2=2)[jj]) / 3.0
     r = math.sqrt(cfg.inlier_chi2) * math.sqrt(float(np.median(var)))
     tree = cKDTree(D)
@@ -164,6 +161,23 @@ def visual_translation(
     if far.any() and np.max(np.asarray(counts)[far]) >= cfg.ambiguity_ratio * inl.size:
         return None
     return VisualTranslation(d, 0.5 * (cov + cov.T), int(inl.size), np.column_stack([ii[inl], jj[inl]]))
+
+
+def _pairs_in_region(p_ref: np.ndarray, q: np.ndarray, centre: np.ndarray, radius: float):
+    """The proposals ``D = p_ref[i] - q[j]`` within ``radius`` of ``centre``, with their ``i`` and
+    ``j``, in row-major (i, j) order. Of the N x M pairs (~12,000 a frame) a few hundred fall in
+    the region: a k-d tree of ``p_ref`` queried at ``q + centre`` finds them (with a nanometre of
+    margin), and the region test proper is then applied to those, so the result is the one the
+    whole N x M array gives, bit for bit."""
+    lists = cKDTree(p_ref).query_ball_point(q + centre, radius + 1e-9)
+    n = np.fromiter((len(v) for v in lists), dtype=int, count=len(lists))
+    jj = np.repeat(np.arange(len(q)), n)
+    ii = np.fromiter((i for v in lists for i in v), dtype=int, count=int(n.sum()))
+    order = np.lexsort((jj, ii))
+    ii, jj = ii[order], jj[order]
+    D = p_ref[ii] - q[jj]
+    keep = np.linalg.norm(D - centre, axis=1) <= radius
+    return D[keep], ii[keep], jj[keep]
 
 
 def _one_to_one(cand: np.ndarray, cost: np.ndarray, ii: np.ndarray, jj: np.ndarray) -> np.ndarray:

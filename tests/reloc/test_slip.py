@@ -166,3 +166,24 @@ def test_extra_forward_variance_reaches_both_back_ends_and_splits_in_time():
     a, b = split_step(wide, 0.025)
     assert a.extra_forward_var_m2 + b.extra_forward_var_m2 == pytest.approx(4e-4)
     assert a.extra_forward_var_m2 == pytest.approx(1e-4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.05, 3.0))
+def test_the_region_search_finds_exactly_the_pairs_of_the_whole_array(seed, radius):
+    """The k-d tree's proposals are those of all N x M differences inside the region, in the same
+    (i, j) order, boundary included (a pair exactly at the radius: points on a grid)."""
+    from reloc.slip import _pairs_in_region
+
+    rng = np.random.default_rng(seed)
+    p_ref = np.round(rng.uniform(-6.0, 6.0, (int(rng.integers(1, 60)), 3)), 1)  # grid: ties at the radius
+    q = np.round(rng.uniform(-6.0, 6.0, (int(rng.integers(1, 60)), 3)), 1)
+    centre = np.round(rng.uniform(-1.0, 1.0, 3), 1)
+    radius = round(radius, 1)
+    D_all = (p_ref[:, None, :] - q[None, :, :]).reshape(-1, 3)
+    ii_all, jj_all = np.divmod(np.arange(D_all.shape[0]), len(q))
+    keep = np.linalg.norm(D_all - centre, axis=1) <= radius
+    D, ii, jj = _pairs_in_region(p_ref, q, centre, radius)
+    np.testing.assert_array_equal(ii, ii_all[keep])
+    np.testing.assert_array_equal(jj, jj_all[keep])
+    np.testing.assert_array_equal(D, D_all[keep])
