@@ -118,10 +118,9 @@ def resolved_compare_config(cfg: CompareConfig) -> dict:
     out = config_to_dict(cfg)
     out["backend_overrides"] = {}
     for name in cfg.backends:
-        given = cfg.backend_overrides.get(name) or {}
-        resolved = resolved_config(name, given)
-        out["backend_overrides"][name] = {k: v for k, v in resolved.items()
-                                          if k in given or k not in per_world_keys(name)}
+        given, per_world = cfg.backend_overrides.get(name) or {}, per_world_keys(name)
+        out["backend_overrides"][name] = {k: v for k, v in resolved_config(name, given).items()
+                                          if k in given or k not in per_world}
     return out
 
 

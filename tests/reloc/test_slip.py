@@ -172,8 +172,12 @@ def test_extra_forward_variance_reaches_both_back_ends_and_splits_in_time():
 @given(st.integers(0, 10_000), st.floats(0.05, 3.0))
 def test_the_region_search_finds_exactly_the_pairs_of_the_whole_array(seed, radius):
     """The k-d tree's proposals are those of all N x M differences inside the region, in the same
-    (i, j) order, boundary included (a pair exactly at the radius: points on a grid)."""
+    (i, j) order (points on a grid, so that pairs fall near the radius), and a pair exactly at
+    the radius is kept, as the whole array's test keeps it."""
     from reloc.slip import _pairs_in_region
+
+    _, ii, jj = _pairs_in_region(np.array([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), np.zeros((1, 3)), np.zeros(3), 1.0)
+    assert ii.tolist() == [0] and jj.tolist() == [0]
 
     rng = np.random.default_rng(seed)
     p_ref = np.round(rng.uniform(-6.0, 6.0, (int(rng.integers(1, 60)), 3)), 1)  # grid: ties at the radius
