@@ -251,16 +251,30 @@ class DecodeContext:
 
 
 @dataclass(frozen=True)
+class CdrParser:
+    """A way past rosbags' deserializer for one message type: ``parse(raw CDR bytes)`` gives what
+    the kind's decoder takes, with its header's stamp as ``stamp_ns``, or None for bytes it does
+    not read (rosbags deserializes that message then); used only on a bag whose typestore it
+    ``accepts`` (the same definitions)."""
+
+    msgtype: str
+    parse: Callable[[bytes | memoryview], Any]
+    accepts: Callable[[Any], bool]
+
+
+@dataclass(frozen=True)
 class BagCodec:
     """How one landmark kind travels in a bag: ``msgtypes`` accepted on read (the first is
     written), ``default_topic``, ``decoder(ctx) -> (msg, ns) -> observation`` (raising
     :class:`MessageContentError` / :class:`~reloc.errors.MeasurementError` for a bad message,
-    :class:`UnknownFrameError` for an unknown frame) and ``encode(obs, ns, builder) -> msg``."""
+    :class:`UnknownFrameError` for an unknown frame), ``encode(obs, ns, builder) -> msg`` and,
+    optionally, a ``parser`` whose output the decoder takes as well as a deserialized message."""
 
     msgtypes: tuple[str, ...]
     default_topic: str
     decoder: Callable[[DecodeContext], Callable[[Any, int], Any]]
     encode: Callable[[Any, int, MessageBuilder], Any]
+    parser: CdrParser | None = None
 
 
 def check_transform(name: str, T, base_frame: str) -> np.ndarray:

@@ -29,6 +29,7 @@ from reloc.bag_spec import (
     stamp_s,
 )
 from reloc.craters import CraterObservations
+from reloc.detections import DETECTIONS_PARSER, Detections
 
 CRATER_CLASS_ID = "crater"
 RIM_CLASS_ID = "crater_rim"
@@ -36,40 +37,43 @@ DEFAULT_DIAMETER_SIGMA_REL = 0.1  # diameter sigma / D of a crater sent without 
 
 
 class CraterDecoder:
-    """Detection3DArray -> CraterObservations in base_link (see module doc)."""
+    """Detection3DArray -> CraterObservations in base_link (see module doc); takes the message
+    deserialized or as :class:`reloc.detections.Detections` (straight from its bytes)."""
 
     def __init__(self, ctx: DecodeContext) -> None:
         self.base = ctx.config.base_frame
         self.T_base_frame = dict(ctx.T_base_frame)
 
     def __call__(self, msg, ns: int) -> CraterObservations:
+        d = msg if isinstance(msg, Detections) else Detections.from_message(msg)
+        by_det: list[dict[str, int]] = [{} for _ in range(len(d))]
+        for j, (i, c) in enumerate(zip(d.result_det.tolist(), d.class_id, strict=True)):
+            by_det[i][c] = j  # the last hypothesis of a class counts
         rows = []
-        for det in msg.detections:
-            by_class = {r.hypothesis.class_id: r for r in det.results}
+        for i, by_class in enumerate(by_det):
             crater = by_class.get(CRATER_CLASS_ID)
             if crater is None:
                 continue  # another class on the crater topic
-            frame = det.header.frame_id or msg.header.frame_id or self.base
+            frame = d.det_frame[i] or d.frame_id or self.base
             T = self.T_base_frame.get(frame)
             if T is None:
                 raise UnknownFrameError(f"crater detections in frame {frame!r}, which has no transform to {self.base!r}")
-            c, b = det.bbox.center.position, det.bbox.size
-            d = float(max(b.x, b.y))
-            cov6 = np.reshape(np.asarray(crater.pose.covariance, dtype=float), (6, 6))
+            c, b = d.center[i, :3], d.size[i]
+            diameter = float(max(b[0], b[1]))
+            cov6 = d.covariance[crater].reshape(6, 6)
             cov = T[:3, :3] @ cov6[:3, :3] @ T[:3, :3].T
             if not (np.all(np.isfinite(cov)) and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov)[0] > 0):
                 raise MessageContentError("a crater detection without a positive-definite centre covariance")
             rim = by_class.get(RIM_CLASS_ID)
             if rim is None:
-                completeness, sigma_d = 1.0, DEFAULT_DIAMETER_SIGMA_REL * d
+                completeness, sigma_d = 1.0, DEFAULT_DIAMETER_SIGMA_REL * diameter
             else:
-                completeness = float(rim.hypothesis.score)
-                var_d = float(rim.pose.covariance[0])
+                completeness = float(d.score[rim])
+                var_d = float(d.covariance[rim, 0])
                 if not var_d > 0:
                     raise MessageContentError(f"crater rim hypothesis with diameter variance {var_d}")
                 sigma_d = float(np.sqrt(var_d))
-            rows.append((T[:3, :3] @ (c.x, c.y, c.z) + T[:3, 3], cov, d, sigma_d, completeness,
-                         float(crater.hypothesis.score)))
+            rows.append((T[:3, :3] @ c + T[:3, 3], cov, diameter, sigma_d, completeness, float(d.score[crater])))
         n = len(rows)
         return CraterObservations(
             stamp_s(ns), np.reshape([r[0] for r in rows], (n, 3)), np.reshape([r[1] for r in rows], (n, 3, 3)),
@@ -102,4 +106,5 @@ def encode_craters(m: CraterObservations, ns: int, b: MessageBuilder):
     return T[ROCKS_TYPE](header=b.header(ns, b.frame_base), detections=detections)
 
 
-CRATER_CODEC = BagCodec(msgtypes=(ROCKS_TYPE,), default_topic="/craters", decoder=CraterDecoder, encode=encode_craters)
+CRATER_CODEC = BagCodec(msgtypes=(ROCKS_TYPE,), default_topic="/craters", decoder=CraterDecoder, encode=encode_craters,
+                        parser=DETECTIONS_PARSER)

@@ -21,29 +21,34 @@ from reloc.bag_spec import (
     UnknownFrameError,
     stamp_s,
 )
+from reloc.detections import DETECTIONS_PARSER, Detections
 from reloc.measurements import RockObservations
 
 
 class RockDecoder:
-    """Detection3DArray -> RockObservations in base_link (see module doc).
+    """Detection3DArray -> RockObservations in base_link (see module doc); takes the message
+    deserialized or as :class:`reloc.detections.Detections` (straight from its bytes).
 
     Reader settings used (``ctx.config``): ``base_frame``; ``default_rock_sigma_m``, the
     isotropic 1-sigma for detections without a usable covariance (None: such a detection makes
     the message invalid); ``rock_class_ids``, the hypotheses counted as rocks (None: any class;
-    the best-scoring hypothesis gives the score and the covariance)."""
+    the best-scoring hypothesis gives the score and the covariance, the first of equal ones)."""
 
     def __init__(self, ctx: DecodeContext) -> None:
         self.config = ctx.config
         self.T_base_frame = dict(ctx.T_base_frame)
 
-    def _hypothesis(self, det):
-        rocks = [
-            r
-            for r in det.results
-            if self.config.rock_class_ids is None
-            or r.hypothesis.class_id in self.config.rock_class_ids
-        ]
-        return max(rocks, key=lambda r: r.hypothesis.score) if rocks else None
+    def _best(self, d: Detections) -> list[int]:
+        """Per detection, the index of its best-scoring rock hypothesis, or -1."""
+        ids = self.config.rock_class_ids
+        best = [-1] * len(d)
+        score = d.score.tolist()
+        for j, (i, c) in enumerate(zip(d.result_det.tolist(), d.class_id, strict=True)):
+            if ids is None or c in ids:
+                b = best[i]
+                if b < 0 or score[j] > score[b]:  # as max(): the first of equal (or NaN) scores stays
+                    best[i] = j
+        return best
 
     def _covs(self, cov6: np.ndarray, has_cov: np.ndarray) -> np.ndarray:
         """(N, 3, 3) position covariances from (N, 6, 6) pose covariances, or the default."""
@@ -66,40 +71,38 @@ class RockDecoder:
             cov[bad] = np.eye(3) * self.config.default_rock_sigma_m**2
         return cov
 
-    def __call__(self, msg, ns: int) -> RockObservations:
-        """Decode one frame (detections holding only non-rock classes are skipped)."""
-        n = len(msg.detections)
-        xyz = np.empty((n, 3))
-        cov6 = np.zeros((n, 6, 6))
-        has_cov = np.zeros(n, dtype=bool)
-        size = np.empty(n)
-        score = np.ones(n)
-        R_t = np.empty((n, 3, 4))
-        keep = np.ones(n, dtype=bool)
+    def _transforms(self, d: Detections, keep: np.ndarray) -> np.ndarray:
+        """(N, 3, 4) [R | t] base_link <- each kept detection's frame."""
         base = self.config.base_frame
-        for i, det in enumerate(msg.detections):
-            result = self._hypothesis(det)
-            if result is None and det.results:
-                keep[i] = False  # only other classes
-                continue
-            frame = det.header.frame_id or msg.header.frame_id or base
+        R_t = np.empty((int(keep.sum()), 3, 4))
+        for row, i in enumerate(np.flatnonzero(keep).tolist()):
+            frame = d.det_frame[i] or d.frame_id or base
             T = self.T_base_frame.get(frame)
             if T is None:
                 raise UnknownFrameError(
                     f"rock detections in frame {frame!r}, which has no transform to "
                     f"{base!r}; pass camera_frames={{{frame!r}: T_base_{frame}}}"
                 )
-            R_t[i] = T[:3]
-            c, b = det.bbox.center.position, det.bbox.size
-            xyz[i] = (c.x, c.y, c.z)
-            size[i] = max(b.x, b.y, b.z)
-            if result is not None:
-                cov6[i] = np.reshape(result.pose.covariance, (6, 6))
-                has_cov[i] = True
-                score[i] = result.hypothesis.score
-        xyz, cov6, has_cov, size, score, R_t = (
-            a[keep] for a in (xyz, cov6, has_cov, size, score, R_t)
-        )
+            R_t[row] = T[:3]
+        return R_t
+
+    def __call__(self, msg, ns: int) -> RockObservations:
+        """Decode one frame (detections holding only non-rock classes are skipped)."""
+        d = msg if isinstance(msg, Detections) else Detections.from_message(msg)
+        n = len(d)
+        best = np.array(self._best(d), dtype=np.int64)
+        has_results = np.bincount(d.result_det, minlength=n)[:n] > 0
+        keep = (best >= 0) | ~has_results  # a detection of other classes only is skipped
+        best = best[keep]
+        has_cov = best >= 0
+        rows = best[has_cov]
+        cov6 = np.zeros((len(best), 6, 6))
+        cov6[has_cov] = d.covariance[rows].reshape(-1, 6, 6)
+        score = np.ones(len(best))
+        score[has_cov] = d.score[rows]
+        R_t = self._transforms(d, keep)
+        xyz = d.center[keep, :3]
+        size = d.size[keep].max(axis=1) if len(best) else np.empty(0)
         R, t = R_t[:, :, :3], R_t[:, :, 3]
         cov = self._covs(cov6, has_cov)
         return RockObservations(
@@ -133,4 +136,5 @@ def encode_rocks(m: RockObservations, ns: int, b: MessageBuilder):
     return T[ROCKS_TYPE](header=b.header(ns, b.frame_base), detections=detections)
 
 
-ROCK_CODEC = BagCodec(msgtypes=(ROCKS_TYPE,), default_topic="/rocks", decoder=RockDecoder, encode=encode_rocks)
+ROCK_CODEC = BagCodec(msgtypes=(ROCKS_TYPE,), default_topic="/rocks", decoder=RockDecoder, encode=encode_rocks,
+                      parser=DETECTIONS_PARSER)

@@ -59,28 +59,57 @@ def test_craters_travel_through_a_bag(tmp_path, synth):
 def test_the_decoder_defaults_a_crater_without_its_rim_hypothesis_and_refuses_bad_ones():
     from types import SimpleNamespace as NS
 
-    from reloc.bag_spec import DecodeContext, MessageContentError, UnknownFrameError
+    from reloc.bag_spec import DecodeContext, MessageContentError, UnknownFrameError, typestore
     from reloc.crater_bag import DEFAULT_DIAMETER_SIGMA_REL, CraterDecoder
+    from reloc.detections import Detections, parse_detection3d_array
 
-    def det(cov, frame="base_link", rim=None):
-        hyp = [NS(hypothesis=NS(class_id="crater", score=0.7), pose=NS(covariance=cov))]
-        if rim is not None:
-            hyp.append(rim)
-        return NS(header=NS(frame_id=frame), results=hyp,
-                  bbox=NS(center=NS(position=NS(x=9.0, y=1.0, z=0.0)), size=NS(x=4.0, y=4.0, z=0.0)))
+    ts = typestore()
+    T = ts.types
+
+    def header(frame):
+        return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=frame)
+
+    def pose(x=0.0, y=0.0):
+        return T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+                                           orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+
+    def hyp(class_id, score, cov):
+        return T["vision_msgs/msg/ObjectHypothesisWithPose"](
+            hypothesis=T["vision_msgs/msg/ObjectHypothesis"](class_id=class_id, score=score),
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose(), covariance=np.asarray(cov, float)))
+
+    def frame(cov, det_frame="base_link", rim=None):
+        det = T["vision_msgs/msg/Detection3D"](
+            header=header(det_frame), results=[hyp("crater", 0.7, cov)] + ([rim] if rim is not None else []),
+            bbox=T["vision_msgs/msg/BoundingBox3D"](center=pose(9.0, 1.0),
+                                                    size=T["geometry_msgs/msg/Vector3"](x=4.0, y=4.0, z=0.0)),
+            id="")
+        return T["vision_msgs/msg/Detection3DArray"](header=header("base_link"), detections=[det])
+
+    def forms(msg):  # as rosbags deserializes it, and as reloc.detections parses its bytes
+        raw = bytes(ts.serialize_cdr(msg, "vision_msgs/msg/Detection3DArray"))
+        return msg, parse_detection3d_array(raw)
 
     ctx = DecodeContext(NS(base_frame="base_link"), {"base_link": np.eye(4)})
     good = (np.eye(6) * 0.04).ravel()
     dec = CraterDecoder(ctx)
-    o = dec(NS(header=NS(frame_id="base_link"), detections=[det(good)]), 2_000_000_000)
-    assert o.t == 2.0 and o.completeness[0] == 1.0 and o.size_sigma_m[0] == pytest.approx(4.0 * DEFAULT_DIAMETER_SIGMA_REL)
-    with pytest.raises(MessageContentError, match="positive-definite"):
-        dec(NS(header=NS(frame_id="base_link"), detections=[det(np.zeros(36))]), 0)
-    bad_rim = NS(hypothesis=NS(class_id="crater_rim", score=0.5), pose=NS(covariance=np.zeros(36)))
-    with pytest.raises(MessageContentError, match="diameter variance"):
-        dec(NS(header=NS(frame_id="base_link"), detections=[det(good, rim=bad_rim)]), 0)
-    with pytest.raises(UnknownFrameError, match="'mast'"):
-        dec(NS(header=NS(frame_id="base_link"), detections=[det(good, frame="mast")]), 0)
+    for msg in forms(frame(good)):
+        o = dec(msg, 2_000_000_000)
+        assert o.t == 2.0 and o.completeness[0] == 1.0
+        assert o.size_sigma_m[0] == pytest.approx(4.0 * DEFAULT_DIAMETER_SIGMA_REL)
+    rim = np.zeros(36)
+    rim[0] = 0.09
+    for msg in forms(frame(good, rim=hyp("crater_rim", 0.5, rim))):
+        o = dec(msg, 0)
+        assert o.completeness[0] == 0.5 and o.size_sigma_m[0] == pytest.approx(0.3)
+    bad = ((MessageContentError, "positive-definite", frame(np.zeros(36))),
+           (MessageContentError, "diameter variance", frame(good, rim=hyp("crater_rim", 0.5, np.zeros(36)))),
+           (UnknownFrameError, "'mast'", frame(good, det_frame="mast")))
+    for error, match, m in bad:
+        for msg in forms(m):
+            assert isinstance(msg, (Detections, type(m)))
+            with pytest.raises(error, match=match):
+                dec(msg, 0)
 
 
 @pytest.mark.parametrize("name,tol_m", [("ekf", 0.6), ("isam2", 0.6), ("dr", 1.5)])

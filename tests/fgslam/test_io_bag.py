@@ -410,3 +410,43 @@ def test_stamps_out_of_log_time_order_sorted_and_counted(tmp_path, caplog):
 
 def _imu_stamp(msg) -> int:
     return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+
+
+def _identical(a: list, b: list) -> bool:
+    return len(a) == len(b) and all(
+        type(x) is type(y) and all(np.array_equal(getattr(x, k), getattr(y, k)) for k in x.__slots__)
+        for x, y in zip(a, b))
+
+
+def test_landmark_frames_read_alike_parsed_or_deserialized(tmp_path, stream, monkeypatch):
+    """The rock and crater frames parsed from their bytes (reloc.detections) give the very
+    measurements, reports and errors of rosbags' deserializer."""
+    from fgslam.io import bag_merge
+
+    bag = tmp_path / "bag"
+    write_bag(bag, stream)
+    msgs, _ = _other_tool_messages()
+    other = _write_raw(tmp_path / "other", msgs)
+    kw = {"camera_frames": {"camera_optical": T_BASE_CAM}, "config": BagReaderConfig(default_rock_sigma_m=0.1)}
+
+    def reads():
+        errors = []
+        for call in (lambda: read_bag(other, config=BagReaderConfig(default_rock_sigma_m=0.1)),
+                     lambda: read_bag(other, camera_frames=kw["camera_frames"], repair=False)):
+            with pytest.raises(BagError) as info:
+                call()
+            errors.append(str(info.value))
+        return read_bag(bag), read_bag(other, **kw), errors
+
+    used = []
+    chosen = bag_merge.usable_parser
+    monkeypatch.setattr(bag_merge, "usable_parser", lambda *a: used.append(chosen(*a)) or used[-1])
+    parsed = reads()
+    assert any(p is not None for p in used)
+    monkeypatch.setattr(bag_merge, "usable_parser", lambda *a: None)
+    deserialized = reads()
+    for got, ref in zip(parsed[:2], deserialized[:2]):
+        assert _identical(got.measurements, ref.measurements)
+        assert got.report == ref.report
+    assert parsed[2] == deserialized[2]
+    assert sum(len(m) for m in parsed[0].measurements if isinstance(m, RockObservations)) > 10

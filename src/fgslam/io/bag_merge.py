@@ -13,11 +13,18 @@ from fgslam.errors import BagError
 from fgslam.io.bag_decode import has_nonfinite, header_ns, same_measurement
 from fgslam.io.bag_report import TopicReport
 from fgslam.io.cdr_batch import LAYOUTS, decode_block, row_finite
-from reloc.bag_spec import MessageContentError, UnknownFrameError
+from reloc.bag_spec import CdrParser, MessageContentError, UnknownFrameError
 from reloc.errors import MeasurementError
 from reloc.measurements import Measurement, sort_key
 
 BLOCK = 2048  # messages decoded at once (the vectorised decoders' batch)
+
+
+def usable_parser(role, msgtype: str, reader) -> CdrParser | None:
+    """The role's own parser of raw messages (a landmark kind's fast path) where the topic's type
+    is the parser's and the bag defines it as fgslam does; else None (rosbags deserializes)."""
+    p = role.parser
+    return p if p is not None and msgtype == p.msgtype and p.accepts(reader.typestore) else None
 
 
 class BagPass:
@@ -32,6 +39,7 @@ class BagPass:
                            "n_duplicates": 0, "n_conflicts": 0, "n_nonfinite": 0, "n_invalid": 0, "n_late": 0,
                            "n_log_stamped": 0, "first_problem": ""} for t in self.role}
         self.raw: dict[str, list] = {t: [] for t in self.role}  # (arrival, log_ns, raw) waiting for decoding
+        self.parser = {t: p for t, r in self.role.items() if (p := usable_parser(r, self.counts[t]["msgtype"], reader))}
         self.heap: list = []
         self.seq = 0
         self.max_ns = {t: None for t in self.role}  # latest stamp decoded per topic
@@ -87,13 +95,19 @@ class BagPass:
             return [(a, topic, ns, m, n0 + k, not ok) for k, ((a, _, _), ns, m, ok)
                     in enumerate(zip(items, stamps.tolist(), built, row_finite(block).tolist()))]
         out = []
+        parser = self.parser.get(topic)
         for k, (arrival, log_ns, raw) in enumerate(items):
             try:
-                msg = self.reader.deserialize(raw, msgtype)
+                msg = parser.parse(raw) if parser is not None else None
+                parsed = msg is not None
+                if not parsed:
+                    msg = self.reader.deserialize(raw, msgtype)
             except Exception as exc:
                 raise BagError(f"bag {self.path}: topic {topic}: message {n0 + k} cannot be deserialized "
                                f"(corrupt bag): {type(exc).__name__}: {exc}") from exc
-            if hasattr(msg, "header"):
+            if parsed:  # the parser's output carries its header's stamp (CdrParser)
+                ns = msg.stamp_ns
+            elif hasattr(msg, "header"):
                 ns = header_ns(msg.header)
             else:
                 ns = int(log_ns)

@@ -52,6 +52,7 @@ from reloc.bag_spec import (
     IMU_TYPE,
     ODOMETRY_TYPE,
     BagCodecError,
+    CdrParser,
     DecodeContext,
     TopicNames,
     check_transform,
@@ -77,6 +78,7 @@ class _Role:
     decode: Callable  # one deserialized message -> measurement
     landmark: bool = False  # the topic of a landmark kind
     batch: Callable | None = None  # a decoded block (fgslam.io.cdr_batch) -> (ns, measurements)
+    parser: CdrParser | None = None  # raw CDR -> what ``decode`` takes (a landmark kind's fast path)
 
 
 def _resolve(path: Path) -> Path:
@@ -147,6 +149,11 @@ class OpenBag:
     @property
     def end_time(self) -> int:
         return self.reader.end_time
+
+    @property
+    def typestore(self):
+        """The message definitions of the bag (its own where it embeds them)."""
+        return self.reader.typestore
 
     def messages(self, *args, **kwargs):
         """rosbags' ``AnyReader.messages``: (connection, log time ns, raw CDR bytes)."""
@@ -297,7 +304,7 @@ def _landmark_roles(topics: TopicNames, kinds: Sequence[str] | None, ctx: Decode
             raise BagError(f"landmark kind {kind.name!r} has no bag layer: it cannot be read from a bag")
         codec = kind.layer("bag")
         roles.append(_Role(kind.name, topics.topic_of(kind.name, codec), tuple(codec.msgtypes),
-                           codec.decoder(ctx), landmark=True))
+                           codec.decoder(ctx), landmark=True, parser=codec.parser))
     return roles
 
 
