@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
@@ -290,10 +289,7 @@ def _scene_writers(out: _Out, enc: _Encoder, topics: TopicNames, style: BagStyle
 
     def truth(m: GroundTruthPose, ns: int) -> None:
         if style.tf:
-            T = np.eye(4)
-            T[:3, :3] = Rotation.from_quat(m.quat_xyzw).as_matrix()
-            T[:3, 3] = m.position_m
-            out.msg(topics.tf, TF_TYPE, ns, tf_message(enc, ns, [(WORLD_FRAME, BASE_FRAME, T)]))
+            out.msg(topics.tf, TF_TYPE, ns, tf_message(enc, ns, [(WORLD_FRAME, BASE_FRAME, (m.position_m, m.quat_xyzw))]))
 
     return at_start, frame, truth
 

@@ -238,13 +238,15 @@ def camera_info_message(b, ns: int, cal: CameraCalibration):
 
 
 def tf_message(b, ns: int, transforms: Iterable[tuple[str, str, np.ndarray]]):
-    """TFMessage of (parent, child, T_parent_child) triples stamped ``ns``."""
+    """TFMessage of (parent, child, T_parent_child) triples stamped ``ns``; T_parent_child a
+    (4, 4) matrix or (translation, quaternion xyzw) as they are (no round trip through a matrix)."""
     T = b.types
     out = []
     for parent, child, M in transforms:
+        p, q = M if isinstance(M, tuple) else (M[:3, 3], quat_xyzw(M))
         out.append(T["geometry_msgs/msg/TransformStamped"](
             header=b.header(ns, parent), child_frame_id=child,
-            transform=T["geometry_msgs/msg/Transform"](translation=b.vec3(M[:3, 3]), rotation=b.quat(quat_xyzw(M)))))
+            transform=T["geometry_msgs/msg/Transform"](translation=b.vec3(p), rotation=b.quat(q))))
     return T["tf2_msgs/msg/TFMessage"](transforms=out)
 
 
