@@ -11,6 +11,7 @@ that moves the pose at ``t_meas`` onto the fix is applied to the current pose an
 from __future__ import annotations
 
 import bisect
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,14 +56,73 @@ class DeadReckoningError(FgslamError):
 
 class _PointMap:
     """One kind's world-frame map: positions (N, 3), covariances (N, 3, 3) of the sightings
-    fused, the rover's position covariance when each was last seen (N, 3, 3), sizes, counts."""
+    fused, the rover's position covariance when each was last seen (N, 3, 3), sizes, counts;
+    arrays grown by doubling, and a grid of ``cell_m`` cells (the association gate) over x, y,
+    so that the landmarks within the gate of a point are those of its 3 x 3 cells: finding the
+    nearest costs what a neighbourhood holds, not what the whole map does (the scan of every
+    landmark made a 250 m traverse's map 224 s, growing with the square of the distance)."""
 
-    def __init__(self) -> None:
-        self.xyz = np.zeros((0, 3))
-        self.cov = np.zeros((0, 3, 3))
-        self.pose_cov = np.zeros((0, 3, 3))
-        self.size = np.zeros(0)
-        self.n = np.zeros(0, dtype=int)
+    def __init__(self, cell_m: float) -> None:
+        self.cell_m = float(cell_m)
+        self.count = 0
+        self._xyz = np.zeros((16, 3))
+        self._cov = np.zeros((16, 3, 3))
+        self._pose_cov = np.zeros((16, 3, 3))
+        self._size = np.zeros(16)
+        self._n = np.zeros(16, dtype=int)
+        self._cells: dict[tuple[int, int], list[int]] = {}
+        self._cell_of: list[tuple[int, int]] = []
+
+    xyz = property(lambda self: self._xyz[:self.count])
+    cov = property(lambda self: self._cov[:self.count])
+    pose_cov = property(lambda self: self._pose_cov[:self.count])
+    size = property(lambda self: self._size[:self.count])
+    n = property(lambda self: self._n[:self.count])
+
+    def _cell(self, xy) -> tuple[int, int]:
+        return (math.floor(xy[0] / self.cell_m), math.floor(xy[1] / self.cell_m))
+
+    def nearest(self, xy: np.ndarray) -> tuple[int, float]:
+        """(index, planar distance) of the nearest landmark if one is within ``cell_m`` of ``xy``
+        (the lowest index among equally near ones), else (-1, inf)."""
+        cx, cy = self._cell(xy)
+        near = sorted(i for dx in (-1, 0, 1) for dy in (-1, 0, 1) for i in self._cells.get((cx + dx, cy + dy), ()))
+        if not near:
+            return -1, math.inf
+        d = np.linalg.norm(self._xyz[near, :2] - xy[:2], axis=1)
+        j = int(np.argmin(d))
+        return (near[j], float(d[j])) if d[j] < self.cell_m else (-1, math.inf)
+
+    def add(self, xyz, cov, pose_cov, size: float) -> None:
+        if self.count == len(self._xyz):
+            grow = len(self._xyz)
+            self._xyz = np.concatenate([self._xyz, np.zeros((grow, 3))])
+            self._cov = np.concatenate([self._cov, np.zeros((grow, 3, 3))])
+            self._pose_cov = np.concatenate([self._pose_cov, np.zeros((grow, 3, 3))])
+            self._size = np.concatenate([self._size, np.zeros(grow)])
+            self._n = np.concatenate([self._n, np.zeros(grow, dtype=int)])
+        i = self.count
+        self._xyz[i], self._cov[i], self._pose_cov[i], self._size[i], self._n[i] = xyz, cov, pose_cov, size, 1
+        self.count += 1
+        cell = self._cell(self._xyz[i])
+        self._cells.setdefault(cell, []).append(i)
+        self._cell_of.append(cell)
+
+    def moved(self, i: int) -> None:
+        """Landmark ``i``'s position changed: its cell follows."""
+        cell = self._cell(self._xyz[i])
+        if cell != self._cell_of[i]:
+            self._cells[self._cell_of[i]].remove(i)
+            self._cells.setdefault(cell, []).append(i)
+            self._cell_of[i] = cell
+
+    def transform(self, R: np.ndarray, t: np.ndarray) -> None:
+        """Move every landmark by ``x -> R x + t`` (a fix's correction) and re-grid them."""
+        self._xyz[:self.count] = self.xyz @ R.T + t
+        self._cells.clear()
+        self._cell_of = [self._cell(p) for p in self._xyz[:self.count]]
+        for i, cell in enumerate(self._cell_of):
+            self._cells.setdefault(cell, []).append(i)
 
 
 class DeadReckoning(Backend):
@@ -119,33 +179,28 @@ class DeadReckoning(Backend):
         n = len(obs)
         if n == 0 or not self.config.build_map:
             return LandmarkUpdateReport(obs.t, 0, 0, 0, 0)
-        lm = self._maps.setdefault(kind.name, _PointMap())
+        lm = self._maps.setdefault(kind.name, _PointMap(self.config.association_gate_m))
         R, p = self._T[:3, :3], self._T[:3, 3]
         xyz_w = obs.xyz_base_m @ R.T + p
         cov_w = R @ obs.cov_base_m2 @ R.T
         n_assoc = n_new = 0
         for k in range(n):
-            if len(lm.xyz):
-                d = np.linalg.norm(lm.xyz[:, :2] - xyz_w[k, :2], axis=1)
-                j = int(np.argmin(d))
-                if d[j] < self.config.association_gate_m:
-                    # information-weighted fusion of the new sighting into landmark j
-                    Pj_inv = np.linalg.inv(lm.cov[j])
-                    Pk_inv = np.linalg.inv(cov_w[k])
-                    P_new = np.linalg.inv(Pj_inv + Pk_inv)
-                    lm.xyz[j] = P_new @ (Pj_inv @ lm.xyz[j] + Pk_inv @ xyz_w[k])
-                    lm.cov[j] = 0.5 * (P_new + P_new.T)
-                    lm.pose_cov[j] = self._P[:3, :3]
-                    m = lm.n[j]
-                    lm.size[j] = (m * lm.size[j] + obs.size_m[k]) / (m + 1)
-                    lm.n[j] += 1
-                    n_assoc += 1
-                    continue
-            lm.xyz = np.vstack([lm.xyz, xyz_w[k]])
-            lm.cov = np.concatenate([lm.cov, cov_w[k][None]])
-            lm.pose_cov = np.concatenate([lm.pose_cov, self._P[None, :3, :3]])
-            lm.size = np.append(lm.size, obs.size_m[k])
-            lm.n = np.append(lm.n, 1)
+            j, _ = lm.nearest(xyz_w[k])
+            if j >= 0:  # the nearest landmark within the gate is the same one
+                # information-weighted fusion of the new sighting into landmark j
+                Pj_inv = np.linalg.inv(lm.cov[j])
+                Pk_inv = np.linalg.inv(cov_w[k])
+                P_new = np.linalg.inv(Pj_inv + Pk_inv)
+                lm.xyz[j] = P_new @ (Pj_inv @ lm.xyz[j] + Pk_inv @ xyz_w[k])
+                lm.cov[j] = 0.5 * (P_new + P_new.T)
+                lm.pose_cov[j] = self._P[:3, :3]
+                m = lm.n[j]
+                lm.size[j] = (m * lm.size[j] + obs.size_m[k]) / (m + 1)
+                lm.n[j] += 1
+                lm.moved(j)
+                n_assoc += 1
+                continue
+            lm.add(xyz_w[k], cov_w[k], self._P[:3, :3], obs.size_m[k])
             n_new += 1
         return LandmarkUpdateReport(obs.t, n, n_assoc, n_new, 0)
 
@@ -176,8 +231,7 @@ class DeadReckoning(Backend):
         self._T[:3, :3] = R2 @ self._T[:3, :3]
         self._T[:3, 3] = R2 @ self._T[:3, 3] + t2
         for lm in self._maps.values():
-            if len(lm.xyz):
-                lm.xyz[:] = lm.xyz @ R2.T + t2
+            lm.transform(R2, t2)
         idx = [0, 1, 5] if fix.height is None else [0, 1, 5, 2]  # the fix's (x, y, yaw[, z]) in [p, theta]
         C = fix.cov
         for a in range(len(idx)):
