@@ -307,6 +307,7 @@ def compare_world(
         "wall_s": wall,
         "real_time_factor": M.real_time_factor(duration, wall),
         "matcher_build_s": sum(r.build_time_s for r in relocs),
+        "shared_front_end_s": dr.extra.get("shared_front_end_s"),  # the passes' front-end, computed once
         "reference_backend": cfg.reference_backend,
         "long_traverse": is_long(span, cfg.long_traverse),
         "backend_overrides": overrides,

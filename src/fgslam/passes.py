@@ -27,7 +27,7 @@ from fgslam.backends.registry import backend_class, make_backend
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FedFixes, FixProducer, FixSource, NoFixes, OnlineFixes, ReplayedFixes
 from fgslam.lifetime import kill_pool, signals_deferred, worker_initializer
-from fgslam.runner import RunnerConfig, RunResult, run_backend
+from fgslam.runner import RunnerConfig, RunResult, run_backend, shared_steps
 
 log = logging.getLogger(__name__)
 
@@ -105,8 +105,13 @@ def _source(state: dict, p: Pass, fixes, fix_feed, fix_sink) -> FixSource:
 def _execute(state: dict, p: Pass, fixes, on_progress, fix_feed=None, fix_sink=None) -> RunResult:
     inputs = state["inputs"]
     be = make_backend(p.backend, inputs.initial, p.overrides)
-    return run_backend(be, inputs.measurements, _source(state, p, fixes, fix_feed, fix_sink),
-                       config=state["runner"], on_progress=on_progress, keep_truth=False)  # the caller has it
+    steps = state.get("steps")
+    res = run_backend(be, inputs.measurements, _source(state, p, fixes, fix_feed, fix_sink),
+                      config=state["runner"], on_progress=on_progress, keep_truth=False,  # the caller has it
+                      steps=steps)
+    if steps is not None:
+        res.extra["shared_front_end_s"] = steps.seconds  # spent once, before the passes, not in their wall_s
+    return res
 
 
 def _worker(p: Pass, fixes) -> tuple[str, RunResult]:
@@ -150,6 +155,10 @@ def run_passes(
     for p in passes:  # import every back-end before forking: workers share the parent's code
         backend_class(p.backend)
     state = {"inputs": inputs, "runner": runner_cfg, "relocalizers": list(relocalizers)}
+    if isinstance(inputs.measurements, list) and len(passes) > 1:  # every pass's front-end, once
+        state["steps"] = shared_steps(inputs.measurements, runner_cfg)
+        log.info("front-end of %d measurements computed once for %d passes in %.1f s",
+                 len(inputs.measurements), len(passes), state["steps"].seconds)
     if workers <= 1 or "fork" not in mp.get_all_start_methods():
         results: dict[str, RunResult] = {}
         for p in wave1:

@@ -1,10 +1,9 @@
 """Runner: feed a time-ordered measurement stream to one back-end, with relocalization.
 
 The loop is the algorithm: for each measurement, *deliver the fixes that are due*, then
-*predict* (motion inputs, assembled into odometry steps by :class:`reloc.odometry.OdometryAssembler`
-and corrected for wheel slip by :class:`reloc.slip.SlipMonitor` and for a gyro bias by
-:class:`reloc.gyro.GyroMonitor`) or *observe* (a landmark frame of any registered kind,
-:mod:`reloc.kinds`, which both monitors see too); ground-truth poses
+*predict* (motion inputs, assembled into odometry steps and corrected for wheel slip and a gyro
+bias by the front-end, :mod:`fgslam.front_end`) or *observe* (a landmark frame of any registered
+kind, :mod:`reloc.kinds`, which the front-end sees too); ground-truth poses
 are only collected for evaluation. Beside it: where fixes come from (one
 :class:`fgslam.fix_sources.FixSource`: online relocalizers, a replayed list, a feed), the
 recording of the online estimate at ``record_rate_hz`` (:class:`RunRecorder`), and the wall time
@@ -31,20 +30,19 @@ from scipy.spatial.transform import Rotation
 from ekf.blas import blas_limit
 from fgslam.errors import FgslamError
 from fgslam.fix_sources import FixSource, NoFixes
+from fgslam.front_end import MOTION_INPUTS, FrontEnd, SharedSteps
 from fgslam.relocalizer import FixAttempt
 from fgslam.timing import TimedBackend
 from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, PoseEstimate, Trajectory
 from reloc.config import NonNegativeInt, Positive, checked
-from reloc.gyro import GyroConfig, GyroMonitor
+from reloc.gyro import GyroConfig
 from reloc.kinds import UnknownKindError, kind_of
-from reloc.measurements import CmdVel, GlobalFix, GroundTruthPose, ImuSample, WheelOdometry
-from reloc.odometry import OdometryAssembler
+from reloc.measurements import GlobalFix, GroundTruthPose
 from reloc.rows import RowBuffer
-from reloc.slip import SlipConfig, SlipMonitor
+from reloc.slip import SlipConfig
 
 log = logging.getLogger(__name__)
 
-MOTION_INPUTS = (CmdVel, WheelOdometry, ImuSample)
 PROGRESS_EVERY = 300  # odometry steps between progress reports
 
 
@@ -235,30 +233,35 @@ def run_backend(
     time_cpu: bool = False,
     observer: RunObserver | None = None,
     keep_truth: bool = True,
+    steps: SharedSteps | None = None,
 ) -> RunResult:
     """Run ``backend`` over ``measurements`` (time-ordered, consumed lazily) with fixes from
     ``fixes`` (:mod:`fgslam.fix_sources`; default none); ``time_cpu`` also measures the CPU time
     of the back-end's calls (``RunResult.backend_cpu_s``, benchmarks); ``observer`` is told of
     each recorded estimate and fix outcome as the run goes (a live viewer). ``keep_truth=False``:
     the caller holds the ground truth already (``RunResult.ground_truth`` is then None; a
-    24-hour traverse's 30 Hz truth is ~170 MB of rows, and a forked pass would send it back)."""
+    24-hour traverse's 30 Hz truth is ~170 MB of rows, and a forked pass would send it back).
+    ``steps``: the front-end of these very ``measurements`` under this config, computed once for
+    several passes (:class:`fgslam.front_end.SharedSteps`; ignored if it is another's)."""
     cfg = config or RunnerConfig()
+    front = steps.for_pass() if steps is not None and steps.matches(measurements, cfg) else FrontEnd(cfg)
     with blas_limit(cfg.blas_threads):
-        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, on_progress, observer,
-                    keep_truth)
+        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, front, on_progress,
+                    observer, keep_truth)
 
 
-def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, on_progress,
+def shared_steps(measurements: list, config: RunnerConfig | None = None) -> SharedSteps:
+    """The front-end of an in-memory stream, once for all the passes run on it (see :func:`run_backend`)."""
+    return SharedSteps(measurements, config or RunnerConfig(), _landmark_kind)
+
+
+def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, front, on_progress,
          observer: RunObserver | None = None, keep_truth: bool = True) -> RunResult:
-    odometry = OdometryAssembler(speed_source=cfg.speed_source, max_gap_s=cfg.max_imu_gap_s,
-                                 max_speed_age_s=cfg.max_speed_age_s)
-    slip = SlipMonitor(cfg.slip)
-    gyro = GyroMonitor(cfg.gyro)
     rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m, observer, keep_truth)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    for m in measurements:
+    for i, m in enumerate(measurements):
         t = m.t
         rec.saw(t)
         for fix in fixes.due(t, be):  # deliver the fixes that are due
@@ -266,9 +269,9 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
             if observer is not None:
                 observer.fix(outcomes[-1])
         if isinstance(m, MOTION_INPUTS):
-            step = odometry.push(m)
+            step = front.motion(i, m)  # odometry corrected for slip and gyro bias
             if step is not None:  # predict
-                be.predict(gyro.correct(slip.correct(step)))
+                be.predict(step)
                 rec.predicted(t, be)
                 fixes.after_predict(t, be)
                 rec.progress(t)
@@ -277,8 +280,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         else:  # observe
             kind = _landmark_kind(m, t)
             kinds.setdefault(kind)
-            slip.observe(kind, m)
-            gyro.observe(kind, m)
+            front.observe(kind, m)
             be.observe(m)
     if rec.t_first is None:
         raise RunnerError("the measurement stream is empty")
@@ -297,6 +299,5 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         wall_s=wall, backend_s=be.busy_s, match_s=fixes.match_s, t_start=float(rec.t_first),
         t_end=float(rec.t_last), cpu_s=cpu, backend_cpu_s=be.busy_cpu_s,
         extra={"frame_latency": be.frame_latency.to_dict(), "frame_cpu_latency": be.frame_cpu_latency.to_dict(),
-               "memory": rec.memory, "slip": slip.stats(),
-               "gyro": gyro.stats()},
+               "memory": rec.memory, **front.stats()},
     )

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from _synth_stream import NearestNeighbourMatcher, make_stream
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fgslam import metrics as M
 from fgslam.backends import DeadReckoning, DeadReckoningConfig, make_backend
@@ -45,6 +47,41 @@ def test_dead_reckoning_is_a_backend_and_drifts(stream):
     assert len(res.online) == pytest.approx(res.duration_s * 10, abs=2)  # 10 Hz records
     assert res.online.cov.shape == (len(res.online), 6, 6)
     assert len(res.landmarks["rocks"]) > 30 and res.attempts == [] and res.outcomes == []
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(-8, 8), st.integers(-8, 8), st.sampled_from([0.0, 0.15, 0.3, 0.6])), min_size=1,
+                max_size=60), st.integers(0, 2**32 - 1))
+def test_the_dead_reckoning_map_finds_the_nearest_landmark_as_a_scan_of_all(cells, seed):
+    """The grid's nearest landmark within the gate is the scan's (the lowest index among equally
+    near ones; points on cell borders and at exactly the gate), also after landmarks moved and
+    after a fix moved the whole map."""
+    from fgslam.backends.dead_reckoning import _PointMap
+
+    gate = 0.6
+    rng = np.random.default_rng(seed)
+    lm = _PointMap(gate)
+    pts = np.array([(gate * i + f, gate * j - f, 0.0) for i, j, f in cells])
+    for p in pts:
+        lm.add(p, np.eye(3), np.eye(3), 1.0)
+
+    def check(queries):
+        for q in queries:
+            d = np.linalg.norm(lm.xyz[:, :2] - q[:2], axis=1)
+            j = int(np.argmin(d))
+            assert lm.nearest(q) == ((j, float(d[j])) if d[j] < gate else (-1, np.inf))
+
+    queries = np.concatenate([pts + rng.choice([-gate, -0.3, 0.0, 0.3, gate], size=pts.shape) * [1, 1, 0],
+                              rng.uniform(-6, 6, size=(20, 3))])
+    check(queries)
+    for i in rng.integers(0, len(pts), size=5):  # a fused sighting moved it
+        lm.xyz[i] += rng.normal(scale=0.4, size=3)
+        lm.moved(int(i))
+    check(queries)
+    c, s = np.cos(0.7), np.sin(0.7)
+    lm.transform(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), np.array([1.3, -0.2, 0.1]))
+    check(queries)
+    assert len(lm.xyz) == len(pts)
 
 
 def test_fix_from_similarity_undoes_a_known_map_error():
@@ -471,3 +508,27 @@ def test_rover_weighted_fit_follows_the_map_near_the_rover():
     assert cov_far[0, 0] > 2 * cov[0, 0]
     with pytest.raises(RelocalizerError, match="fit_radius_m"):
         RelocalizerConfig(fit_radius_m=0.0)
+
+
+def test_a_front_end_computed_once_gives_every_pass_its_own_run(stream):
+    """The slip- and gyro-corrected steps of an in-memory stream, computed once for a comparison's
+    passes (fgslam.front_end.SharedSteps), give each back-end the very run its own front-end gives."""
+    from dataclasses import replace
+
+    from fgslam.runner import RunnerConfig, shared_steps
+
+    cfg = RunnerConfig()
+    steps = shared_steps(stream.measurements, cfg)
+    assert steps.stats["slip"]["n_checks"] > 10 and steps.stats["gyro"]["n_checks"] > 0
+    for name in ("dr", "ekf", "isam2"):
+        own = run_backend(make_backend(name, stream.initial), stream.measurements, config=cfg)
+        shared = run_backend(make_backend(name, stream.initial), stream.measurements, config=cfg, steps=steps)
+        assert np.array_equal(own.final.T_world_base, shared.final.T_world_base), name
+        assert np.array_equal(own.online.cov, shared.online.cov), name
+        assert (own.extra["slip"], own.extra["gyro"]) == (shared.extra["slip"], shared.extra["gyro"]), name
+    # steps of another list, or of another front-end config, are not used: the pass computes its own
+    assert steps.matches(stream.measurements, replace(cfg, record_rate_hz=1.0))
+    assert not steps.matches(list(stream.measurements), cfg)
+    assert not steps.matches(stream.measurements, replace(cfg, speed_source="wheel"))
+    assert not steps.matches(stream.measurements, replace(cfg, slip=replace(cfg.slip, enabled=False)))
+    assert not steps.R0.flags.writeable and not steps.scalars.flags.writeable  # shared: never written
