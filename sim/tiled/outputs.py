@@ -85,7 +85,9 @@ def _keep_truth(stream, kept: list, spacing_m: float):
 
 def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
                     progress: Callable[[str, float, float], None] | None = None,
-                    style=None, topics=None) -> TiledRun:
+                    style=None, topics=None,
+                    write_products: Callable[[Callable[[], OrbitalProducts]], OrbitalProducts] | None = None,
+                    ) -> TiledRun:
     """Simulate the kilometre-preset run ``cfg`` and write its directory ``out`` (see module doc).
     ``progress(stage, done, total)`` is called as it goes (stage "drive" in metres, "catalogs"
     and "image" in tiles). ``style``/``topics``: the bag's :class:`sim.bag_scene.BagStyle` and
@@ -93,7 +95,9 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
     ``/tf_static`` (world -> odom at the start, base_link -> the mast camera) and ``/tf`` (world
     -> base_link with every ground-truth pose); the orbital catalog is made after the drive, so
     it is named in the bag's metadata (``fgslam.catalog``: ``catalog.csv``) rather than latched
-    as markers."""
+    as markers. ``write_products(write)``: how the orbital products are written once the bag is
+    closed; ``write()`` writes them and returns their summary (default: called at once; the demo
+    has it run on a forked process while it reads the bag back)."""
     import yaml
 
     out = Path(out)
@@ -110,8 +114,11 @@ def simulate_to_bag(cfg: SimConfig, out: Path, *, overwrite: bool = True,
                     topics=topics, scene=scene, custom_data={"fgslam.catalog": "catalog.csv"})
     t_drive = time.perf_counter() - t0
     rss_drive = peak_rss_mb()
-    products = write_orbital_products(sim.world, sim.driver.planner.history_xy, sim.config, out, progress,
+    def write() -> OrbitalProducts:
+        return write_orbital_products(sim.world, sim.driver.planner.history_xy, sim.config, out, progress,
                                       route_xyz=truth)
+
+    products = write() if write_products is None else write_products(write)
     wall, cpu = time.perf_counter() - t0, cpu_s() - c0
     stats = dict(sim.stats)
     stats.update({

@@ -202,11 +202,11 @@ def _world_extent(world_yaml: dict) -> tuple[float, float, float, float] | None:
 
 
 def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None, images=None,
-                 image_progress=None) -> RunInputs:
+                 image_progress=None, preread: BagRead | None = None) -> RunInputs:
     """Read a ``fgslam sim`` output directory: bag/, catalog.csv, world.yaml, orbital.png,
     rocks_true.csv, dem.tif, and the catalog file of every other landmark kind present (its catalog
-    layer); refused when its manifest says it was not completely written. ``topics``: as
-    :func:`load_bag`."""
+    layer); refused when its manifest says it was not completely written. ``topics``, ``preread``:
+    as :func:`load_bag`."""
     import yaml
 
     from fgslam.io.outdir import require_complete
@@ -221,7 +221,7 @@ def load_sim_dir(path: Path, start: StartSpec | None = None, topics=None, images
     others = {k.name: path / k.layer("catalog").file_name for k in kinds_with("catalog") if k.name != "rocks"}
     others = {name: p for name, p in others.items() if p.exists()}
     inputs = load_bag(path / "bag", path / "catalog.csv", start=start, name=path.name, kind_catalogs=others,
-                      topics=topics, images=images, image_progress=image_progress)
+                      topics=topics, images=images, image_progress=image_progress, preread=preread)
     world_yaml: dict = {}
     if (path / "world.yaml").exists():
         try:
@@ -277,9 +277,37 @@ def _has_topic(bag: Path, topic: str) -> bool:
         reader.close()
 
 
+@dataclass
+class BagRead:
+    """A bag's measurement source and what a run iterates: the source itself (streamed from disk
+    at every pass) or its measurements read into a list (:func:`read_bag_measurements`)."""
+
+    bag: Path
+    source: object
+    measurements: object
+    stream: bool
+
+
+def read_bag_measurements(bag: Path, topics=None, stream: bool | None = None) -> BagRead:
+    """Open ``bag`` (fgslam's topics, or ``topics``) and, unless it is to be streamed (``stream``;
+    None: above :data:`STREAM_ABOVE_MESSAGES` messages), read its measurements into memory."""
+    from fgslam.io.bag_reader import BagSource
+
+    return _collected(Path(bag), BagSource(bag, topics or bag_topics()), stream)
+
+
+def _collected(bag: Path, source, stream: bool | None) -> BagRead:
+    if stream is None:
+        stream = sum(source.message_counts.values()) > STREAM_ABOVE_MESSAGES
+    measurements = source if stream else list(source)
+    if not stream and not measurements:
+        raise InputFileError(f"{bag}: the bag holds no measurements")
+    return BagRead(bag, source, measurements, bool(stream))
+
+
 def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name: str | None = None,
              kind_catalogs: dict[str, Path] | None = None, stream: bool | None = None,
-             topics=None, images=None, image_progress=None) -> RunInputs:
+             topics=None, images=None, image_progress=None, preread: BagRead | None = None) -> RunInputs:
     """Read any ROS 2 bag with the fgslam topics plus an orbital rock catalog CSV (x,y,size,score)
     and, in ``kind_catalogs``, the catalog files of other landmark kinds (kind name -> path); the
     start pose is the first ground truth unless ``start`` gives one. ``stream``: iterate the bag
@@ -288,8 +316,9 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
     :class:`reloc.bag_spec.TopicNames` (default: fgslam's own names). A bag without the rock
     topic but with stereo images has its rocks detected on the fly
     (:class:`fgslam.io.image_rocks.ImageRockSource`, settings ``images``, an
-    :class:`~fgslam.io.image_rocks.ImageInputConfig`; ``image_progress(done, total)`` per pair)."""
-    from fgslam.io.bag_reader import BagSource
+    :class:`~fgslam.io.image_rocks.ImageInputConfig`; ``image_progress(done, total)`` per pair).
+    ``preread``: this bag already read by :func:`read_bag_measurements` (e.g. while something
+    else was being written)."""
     from fgslam.io.catalog_csv import MIN_CATALOG_ROCKS, read_catalog_csv
 
     bag, catalog_csv = Path(bag), Path(catalog_csv)
@@ -300,18 +329,19 @@ def load_bag(bag: Path, catalog_csv: Path, start: StartSpec | None = None, name:
     from fgslam.io.image_rocks import ImageRockSource, has_images
 
     topics = topics or bag_topics()
-    on_the_fly = not _has_topic(bag, topics.rocks) and has_images(bag, topics)
-    if on_the_fly:
+    on_the_fly = False
+    if preread is not None:
+        if preread.bag != bag:
+            raise InputFileError(f"{bag}: the measurements given were read from another bag, {preread.bag}")
+        read = preread
+    elif on_the_fly := (not _has_topic(bag, topics.rocks) and has_images(bag, topics)):
         log.info("%s: no %s topic; rocks are detected in its stereo images", bag, topics.rocks)
         source = ImageRockSource(bag, topics, images)
         source.detect(image_progress)
+        read = _collected(bag, source, stream)
     else:
-        source = BagSource(bag, topics)
-    if stream is None:
-        stream = sum(source.message_counts.values()) > STREAM_ABOVE_MESSAGES
-    measurements = source if stream else list(source)
-    if not stream and not measurements:
-        raise InputFileError(f"{bag}: the bag holds no measurements")
+        read = read_bag_measurements(bag, topics, stream)
+    source, measurements, stream = read.source, read.measurements, read.stream
     catalog = read_catalog_csv(catalog_csv)
     if len(catalog) < MIN_CATALOG_ROCKS:
         raise InputFileError(f"{catalog_csv}: the catalog holds {len(catalog)} rocks; at least {MIN_CATALOG_ROCKS} are needed")

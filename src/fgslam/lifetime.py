@@ -23,6 +23,8 @@ import threading
 import time
 from collections.abc import Iterator
 
+from fgslam.errors import FgslamError
+
 log = logging.getLogger(__name__)
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
@@ -167,3 +169,56 @@ def terminate_on_sigterm() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+class ForkedTaskError(FgslamError):
+    """A task run on a forked process failed, or its process died."""
+
+
+class Forked:
+    """``fn()`` run now on a forked child process (inherited, not pickled: any closure will do)
+    that dies with this one (:func:`die_with_parent`) and ignores Ctrl-C (the parent's to handle);
+    :meth:`result` waits for its return value (pickled back: keep it small) and raises
+    :class:`ForkedTaskError` naming ``what`` if it raised or its process died. Linux only (fork)."""
+
+    def __init__(self, fn, what: str) -> None:
+        self.what = what
+        ctx = mp.get_context("fork")
+        self._recv, send = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_forked_main, args=(fn, send, os.getpid()), name=what, daemon=True)
+        self._proc.start()
+        send.close()
+
+    def result(self):
+        try:
+            kind, payload = self._recv.recv()
+        except EOFError:
+            self._proc.join()
+            raise ForkedTaskError(f"{self.what}: its process died (exit code {self._proc.exitcode})") from None
+        finally:
+            self._recv.close()
+        self._proc.join()
+        if kind == "error":
+            raise ForkedTaskError(f"{self.what} failed: {payload}")
+        return payload
+
+    def kill(self) -> None:
+        """Stop the child now (the parent gave up on its result)."""
+        with contextlib.suppress(Exception):
+            self._proc.kill()
+            self._proc.join()
+            self._recv.close()
+
+
+def _forked_main(fn, send, parent_pid: int) -> None:
+    die_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        out = ("ok", fn())
+    except BaseException as exc:  # noqa: BLE001 (everything goes back to the parent, named)
+        out = ("error", f"{type(exc).__name__}: {exc}")
+    try:
+        send.send(out)
+    finally:
+        send.close()
