@@ -73,7 +73,11 @@ class CompareConfig:
     kind_relocalizers: dict = field(default_factory=dict)  # other landmark kinds' relocalizer settings, by kind
     backend_overrides: dict = field(default_factory=dict)  # name -> config overrides
     rpe_delta_m: Positive = 10.0
-    workers: PositiveInt = 2  # back-end passes run on this many forked processes (1: in this process)
+    # back-end passes at once on forked processes (1: in this process, one after the other). None:
+    # every pass at once, the cores shared by the OS: the short passes end early, the long ones
+    # together, no core idles while one remains (the demo, 2 cores: comparison ~253-268 s with 2,
+    # a pass without fixes running alone for its last ~44 s; 238 s at once, ~0.5 GB more memory)
+    workers: PositiveInt | None = None
     topics: dict = field(default_factory=dict)  # input role -> bag topic (reloc.bag_spec.topic_names)
     images: ImageInputConfig = field(default_factory=ImageInputConfig)  # a bag's stereo images -> rocks
     long_traverse: LongTraverseConfig = field(default_factory=LongTraverseConfig)  # bounded back-ends

@@ -142,11 +142,12 @@ def by_cost(passes: list[Pass]) -> list[Pass]:
 
 def run_passes(
     inputs, passes: list[Pass], runner_cfg: RunnerConfig, relocalizers: list[FixProducer],
-    fixes_of: Callable[[RunResult], list], workers: int = 1,
+    fixes_of: Callable[[RunResult], list], workers: int | None = 1,
     on_progress: Callable[[str, float], None] | None = None,
 ) -> dict[str, RunResult]:
     """Run ``passes`` (exactly one "online", with ``relocalizers``); replays get
-    ``fixes_of(online result)``."""
+    ``fixes_of(online result)``. ``workers``: 1 in this process, one after the other; N on N
+    forked processes (and one per replay); None every pass at once on its own forked process."""
     online = [p for p in passes if p.mode == "online"]
     if len(online) != 1:
         raise ValueError(f"exactly one online (reference) pass is needed, got {len(online)}")
@@ -159,7 +160,7 @@ def run_passes(
         state["steps"] = shared_steps(inputs.measurements, runner_cfg)
         log.info("front-end of %d measurements computed once for %d passes in %.1f s",
                  len(inputs.measurements), len(passes), state["steps"].seconds)
-    if workers <= 1 or "fork" not in mp.get_all_start_methods():
+    if (workers is not None and workers <= 1) or "fork" not in mp.get_all_start_methods():
         results: dict[str, RunResult] = {}
         for p in wave1:
             results[p.key] = _execute(state, p, None, (lambda t, lab=p.label: on_progress(lab, t)) if on_progress else None)
@@ -187,7 +188,8 @@ def _run_forked(online, wave1, wave2, fixes_of, workers, on_progress) -> dict[st
     # the workers die with this process whatever ends it (fgslam.lifetime): killed or
     # interrupted, a comparison leaves no orphan blocked on its queue
     spare = frozenset(mp.active_children())  # children that are not this pool's
-    pool = ProcessPoolExecutor(max_workers=workers + len(wave2), mp_context=ctx,
+    size = len(wave1) + len(wave2) if workers is None else workers + len(wave2)
+    pool = ProcessPoolExecutor(max_workers=size, mp_context=ctx,
                                initializer=worker_initializer, initargs=(os.getpid(),))
     try:
         # FIFO: the reference pass starts first, the replays next (they stream its fixes), then

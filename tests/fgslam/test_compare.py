@@ -41,9 +41,10 @@ def test_every_variant_receives_the_same_fixes(compared):
             assert run.outcomes == []
 
 
-def test_forked_workers_give_identical_results(compared):
+@pytest.mark.parametrize("workers", [2, None])  # None: every pass at once (the default)
+def test_forked_workers_give_identical_results(compared, workers):
     _, wc1 = compared
-    _, wc2 = _compare(workers=2)
+    _, wc2 = _compare(workers=workers)
     for key in wc1.runs:
         assert np.array_equal(wc1.runs[key].final.T_world_base, wc2.runs[key].final.T_world_base)
     assert wc1.metrics["runs"]["dr_reloc"]["ate"] == wc2.metrics["runs"]["dr_reloc"]["ate"]
