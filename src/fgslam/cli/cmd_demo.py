@@ -18,7 +18,7 @@ from fgslam.cli.app import app
 
 DEMO_WORLD = "rocky-1km"
 # on a kilometre preset, when --distance-m is not given. rocky-1km seed 0, 2 cores, unloaded
-# (2026-12-06): 250 m in 5 min 47 s with the set-up check and the simulation (EKF 0.40 m -> 0.11 m
+# (2026-12-06): 250 m in 4 min 38 s with the set-up check and the simulation (EKF 0.40 m -> 0.11 m
 # with fixes, iSAM2 0.46 -> 0.07, 208 fixes, first at 10 s); README, "What the demo shows"
 DEMO_DISTANCE_M = 250.0
 
