@@ -129,7 +129,7 @@ class DeadReckoning(Backend):
     """Odometry-only back-end (see module doc); ``name`` is "dr"."""
 
     name = "dr"
-    relative_cost = 0.3  # the demo: 24 s against the EKF's 77 s
+    relative_cost = 0.3  # the demo: 24 s against the EKF's 77 s (3 s against 66 s with the front-end shared)
 
     def __init__(self, initial: PoseEstimate, config: DeadReckoningConfig | None = None) -> None:
         self.config = config or DeadReckoningConfig()
