@@ -144,36 +144,21 @@ def _parse(buf: bytes) -> Detections:
     n, pos = _count(buf, pos, 102)
     det_frame, ids, box_at = [], [], []
     result_det, class_id, result_at = [], [], []
-    size = len(buf)
-    u32 = _U32
-    for i in range(n):  # the strings inline (~1.6 million of them in a kilometre bag)
-        pos = ((pos + 3) & ~3) + 8  # the detection's stamp, then its frame id
-        (length,) = u32(buf, pos)
-        end = pos + 4 + length
-        if length == 0 or end > size or buf[end - 1]:
-            raise _Unreadable
-        det_frame.append(buf[pos + 4:end - 1].decode())
-        k, pos = _count(buf, end, 5 + 8 * RESULT_F64)  # a class id (5) and the floats
+    for i in range(n):
+        f, pos = _string(buf, ((pos + 3) & ~3) + 8)  # the detection's stamp, then its frame id
+        det_frame.append(f)
+        k, pos = _count(buf, pos, 5 + 8 * RESULT_F64)  # a class id (5) and the floats
         for _ in range(k):
-            pos = (pos + 3) & ~3
-            (length,) = u32(buf, pos)
-            end = pos + 4 + length
-            if length == 0 or end > size or buf[end - 1]:
-                raise _Unreadable
-            class_id.append(buf[pos + 4:end - 1].decode())
-            pos = (end + 7) & ~7
+            c, pos = _string(buf, pos)
+            pos = (pos + 7) & ~7
             result_det.append(i)
+            class_id.append(c)
             result_at.append(pos)
             pos += 8 * RESULT_F64
         pos = (pos + 7) & ~7
         box_at.append(pos)
-        pos = ((pos + 8 * BBOX_F64) + 3) & ~3  # the box, then the id
-        (length,) = u32(buf, pos)
-        end = pos + 4 + length
-        if length == 0 or end > size or buf[end - 1]:
-            raise _Unreadable
-        ids.append(buf[pos + 4:end - 1].decode())
-        pos = end
+        s, pos = _string(buf, pos + 8 * BBOX_F64)  # the box, then the id
+        ids.append(s)
     if pos + 3 < len(buf):  # rosbags' own test: at most the padding to 4 after the last field
         raise _Unreadable
     f64 = np.frombuffer(buf, dtype="<f8", count=len(buf) // 8)

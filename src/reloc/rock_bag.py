@@ -102,7 +102,7 @@ class RockDecoder:
         score[has_cov] = d.score[rows]
         R_t = self._transforms(d, keep)
         xyz = d.center[keep, :3]
-        size = d.size[keep].max(axis=1) if len(best) else np.empty(0)
+        size = d.size[keep].max(axis=1)
         R, t = R_t[:, :, :3], R_t[:, :, 3]
         cov = self._covs(cov6, has_cov)
         return RockObservations(

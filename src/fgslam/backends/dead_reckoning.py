@@ -94,13 +94,10 @@ class _PointMap:
         return (near[j], float(d[j])) if d[j] < self.cell_m else (-1, math.inf)
 
     def add(self, xyz, cov, pose_cov, size: float) -> None:
-        if self.count == len(self._xyz):
-            grow = len(self._xyz)
-            self._xyz = np.concatenate([self._xyz, np.zeros((grow, 3))])
-            self._cov = np.concatenate([self._cov, np.zeros((grow, 3, 3))])
-            self._pose_cov = np.concatenate([self._pose_cov, np.zeros((grow, 3, 3))])
-            self._size = np.concatenate([self._size, np.zeros(grow)])
-            self._n = np.concatenate([self._n, np.zeros(grow, dtype=int)])
+        if self.count == len(self._xyz):  # full: every array doubles
+            for name in ("_xyz", "_cov", "_pose_cov", "_size", "_n"):
+                a = getattr(self, name)
+                setattr(self, name, np.concatenate([a, np.zeros_like(a)]))
         i = self.count
         self._xyz[i], self._cov[i], self._pose_cov[i], self._size[i], self._n[i] = xyz, cov, pose_cov, size, 1
         self.count += 1
