@@ -192,6 +192,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
         len(attempts), np.array([f.xyyaw for f in fixes]).reshape(-1, 3),
         np.array([f.t_meas for f in fixes]), np.array([f.t_recv for f in fixes]), acc, gt, res.duration_s,
         cov_xyyaw=np.array([f.cov_xyyaw for f in fixes]).reshape(-1, 3, 3),
+        cov_alone_xyyaw=np.array([sum(f.split_cov()) for f in fixes]).reshape(-1, 3, 3),
     ).to_dict()
     out["fixes"]["heights"] = M.fix_height_stats(fixes, gt)  # fixes with a height from the DEM
     out["fixes"]["heights"]["refused"] = int(res.stats.extra.get("n_heights_refused", 0))

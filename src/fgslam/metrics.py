@@ -269,12 +269,18 @@ class FixStats:
     yaw_error_rad: ErrorStats
     within_m: dict
     latency_s_mean: float
-    nees_mean: float = float("nan")  # fix error NEES over (x, y, yaw) against its covariance (3 if calibrated)
+    # fix error NEES over (x, y, yaw) against the covariance sent (3 if calibrated and the fixes
+    # independent; a producer that scales it for the fixes' correlation makes it smaller by design)
+    nees_mean: float = float("nan")
+    # two-sided test of each fix against its covariance alone (before the producer's correlation
+    # factor, GlobalFix.split_cov): whether the matcher's claimed error is the error it makes
+    nees_alone: NeesTest | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["position_error_m"] = self.position_error_m.to_dict()
         d["yaw_error_rad"] = self.yaw_error_rad.to_dict()
+        d["nees_alone"] = None if self.nees_alone is None else self.nees_alone.to_dict()
         return d
 
 
@@ -314,8 +320,12 @@ def fix_stats(
     duration_s: float,
     thresholds_m: tuple[float, ...] = (0.5, 1.0, 2.0),
     cov_xyyaw: np.ndarray | None = None,
+    cov_alone_xyyaw: np.ndarray | None = None,
 ) -> FixStats:
-    """Summarise the fixes of one run; ``accepted`` (K,) bool says whether the back-end took each fix."""
+    """Summarise the fixes of one run; ``accepted`` (K,) bool says whether the back-end took each
+    fix. ``cov_xyyaw`` (K, 3, 3): the covariances sent (``nees_mean``); ``cov_alone_xyyaw``: each
+    fix's own, before a correlation factor (``nees_alone``, a two-sided test over the fixes in
+    order, their shared catalog error counted in the effective sample size)."""
     fixes_xyyaw = np.reshape(np.asarray(fixes_xyyaw, float), (-1, 3))
     k = fixes_xyyaw.shape[0]
     accepted = np.asarray(accepted, bool).reshape(k)
@@ -324,12 +334,15 @@ def fix_stats(
     else:
         pos, yaw = np.zeros(0), np.zeros(0)
     within = {f"{th:g}": (float(np.mean(pos <= th)) if pos.size else float("nan")) for th in thresholds_m}
-    nees = float("nan")
-    if cov_xyyaw is not None and pos.size:
+    nees, alone = float("nan"), None
+    if (cov_xyyaw is not None or cov_alone_xyyaw is not None) and pos.size:
         p_gt, yaw_gt, _ = interpolate_truth(gt, np.asarray(t_meas))
         e = np.column_stack([fixes_xyyaw[:, :2] - p_gt[:, :2], wrap_angle(fixes_xyyaw[:, 2] - yaw_gt)])
-        C = np.reshape(np.asarray(cov_xyyaw, float), (k, 3, 3))
-        nees = float(np.mean(np.einsum("ki,ki->k", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])))
+        if cov_xyyaw is not None:
+            C = np.reshape(np.asarray(cov_xyyaw, float), (k, 3, 3))
+            nees = float(np.mean(np.einsum("ki,ki->k", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])))
+        if cov_alone_xyyaw is not None:
+            alone = whitened_test(whiten(e, np.reshape(np.asarray(cov_alone_xyyaw, float), (k, 3, 3))))
     dur = max(float(duration_s), 1e-9)
     lat = np.asarray(t_recv, float) - np.asarray(t_meas, float)
     return FixStats(
@@ -343,6 +356,7 @@ def fix_stats(
         within_m=within,
         latency_s_mean=float(lat.mean()) if lat.size else float("nan"),
         nees_mean=nees,
+        nees_alone=alone,
     )
 
 

@@ -80,7 +80,8 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
             lambda s: "{:.1f} / {:.1f}".format(*s["runs"][ref]["fixes"]["first_fix_s"]), "{}")
         row("Fix position error median [m]", lambda s: fx(s)["position_error_m"]["median"])
         row("Fix position error mean [m]", lambda s: fx(s)["position_error_m"]["mean"])
-        row("Fix NEES (x,y,yaw) mean", lambda s: fx(s)["nees_mean"], "{:.2f}")
+        row("Fix NEES (x,y,yaw) alone [95 % interval]", lambda s: nees_cell(fx(s).get("nees_alone") or {}), "{}")
+        row("Fix NEES (x,y,yaw) as sent, mean", lambda s: fx(s)["nees_mean"], "{:.2f}")
         row("Fix yaw error median [deg]", lambda s: np.degrees(fx(s)["yaw_error_rad"]["median"]), "{:.2f}")
         row("Fix heights from the DEM (n / z RMSE m / NEES)",  # "–" without a terrain model
             lambda s: "{:d} / {:.3f} / {:.2f}".format(fx(s)["heights"]["n"], fx(s)["heights"]["error_rmse_m"],

@@ -193,6 +193,29 @@ def test_fix_stats_hand_case():
     assert s.latency_s_mean == pytest.approx(2.0)
 
 
+def test_fix_nees_alone_is_two_sided_and_ignores_the_correlation_factor(rng):
+    """Fixes drawn from their own covariance test consistent against it, whatever factor the
+    producer sent them with; fixes claiming 10x their error are pessimistic, 0.3x optimistic."""
+    t, xy, yaw = _line(401, speed=0.1)
+    gt = _traj(t, xy, yaw)
+    k = 300
+    tm = np.sort(rng.uniform(0, 400, k))
+    C = np.array([[0.04, 0.01, 0.0], [0.01, 0.09, 0.002], [0.0, 0.002, 0.0004]])
+    e = rng.multivariate_normal(np.zeros(3), C, size=k)
+    fixes = np.column_stack([0.1 * tm + e[:, 0], e[:, 1], e[:, 2]])
+    sent = np.tile(40.0 * C, (k, 1, 1))  # a correlation factor of 40
+    args = (k, fixes, tm, tm + 2.0, np.ones(k, bool), gt, 400.0)
+    s = M.fix_stats(*args, cov_xyyaw=sent, cov_alone_xyyaw=np.tile(C, (k, 1, 1)))
+    assert s.nees_alone.dof == 3 and s.nees_alone.n == k and s.nees_alone.consistent
+    assert s.nees_alone.interval[0] < 3.0 < s.nees_alone.interval[1]
+    assert s.nees_mean == pytest.approx(s.nees_alone.mean / 40.0, rel=1e-9)
+    assert M.fix_stats(*args, cov_alone_xyyaw=np.tile(10.0 * C, (k, 1, 1))).nees_alone.verdict.value == "pessimistic"
+    assert M.fix_stats(*args, cov_alone_xyyaw=np.tile(0.3 * C, (k, 1, 1))).nees_alone.verdict.value == "optimistic"
+    d = s.to_dict()
+    assert d["nees_alone"]["verdict"] == "consistent" and d["nees_alone"]["dof"] == 3
+    assert M.fix_stats(*args).nees_alone is None and M.fix_stats(*args).to_dict()["nees_alone"] is None
+
+
 def test_error_along_distance_drift_and_bins():
     t, xy, yaw = _line(31)  # 30 m at 1 m/s
     gt = _traj(t, xy, yaw)
