@@ -198,3 +198,56 @@ class PendingDetections:
         self.xyz = np.vstack([self.xyz, xyz[~ok]])
         self.cov = np.concatenate([self.cov, cov[~ok]])
         return ok
+
+
+class RecentFrames:
+    """Every detection of the last seconds in world coordinates, frame by frame, whatever became
+    of it (associated, ambiguous, refused as one of too few uncertain pairs). An uncertain pair
+    asks for ``persistence_n_uncertain`` earlier detections of its landmark that agree; where the
+    rover comes back to its map after a long blind stretch, its gates are metres wide, and a
+    sparse field's frames of one or two detections are refused whole (``min_pairs_uncertain``),
+    so its landmarks are associated only every few frames and never twice in the window: the
+    rover is never re-placed (``AssociationConfig.persistence_any_detection``). What the rule is
+    for holds as well by place: a rock is detected again where it was, clutter is not; this
+    counts the earlier frames that held a detection at the pair's world position, associated or
+    not. :meth:`copy` gives an independent snapshot."""
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0)
+        self.xyz = np.zeros((0, 3))
+        self.cov = np.zeros((0, 3, 3))
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def copy(self) -> RecentFrames:
+        other = RecentFrames()
+        other.t, other.xyz, other.cov = self.t.copy(), self.xyz.copy(), self.cov.copy()
+        return other
+
+    def record(self, t: float, xyz_world: np.ndarray, cov_world: np.ndarray, window_s: float) -> None:
+        """Remember one frame's detections ``xyz_world`` (n, 3), ``cov_world`` (n, 3, 3) at ``t``;
+        forget those older than ``window_s``."""
+        xyz = np.reshape(np.asarray(xyz_world, dtype=float), (-1, 3))
+        cov = np.reshape(np.asarray(cov_world, dtype=float), (-1, 3, 3))
+        live = self.t >= t - window_s
+        self.t = np.concatenate([self.t[live], np.full(xyz.shape[0], float(t))])
+        self.xyz = np.vstack([self.xyz[live], xyz])
+        self.cov = np.concatenate([self.cov[live], cov])
+
+    def count(self, t: float, xyz_world: np.ndarray, cov_world: np.ndarray, window_s: float, gate_chi2: float,
+              slack_var=0.0) -> np.ndarray:
+        """(k,) int: for each detection ``xyz_world`` (k, 3), ``cov_world`` (k, 3, 3) at ``t``, the
+        number of distinct earlier frames (within ``window_s``, strictly before ``t``) holding a
+        detection inside ``gate_chi2`` of it (on the two covariances plus ``slack_var``, scalar or
+        (k,), per axis, as :meth:`RecentDetections.test`)."""
+        xyz = np.reshape(np.asarray(xyz_world, dtype=float), (-1, 3))
+        cov = np.reshape(np.asarray(cov_world, dtype=float), (-1, 3, 3))
+        k = xyz.shape[0]
+        live = np.flatnonzero((self.t >= t - window_s) & (self.t < t))
+        if k == 0 or live.size == 0:
+            return np.zeros(k, dtype=int)
+        slack = np.broadcast_to(np.asarray(slack_var, dtype=float), (k,))
+        d2 = pairwise_d2(xyz, cov + slack[:, None, None] * np.eye(3), self.xyz[live], self.cov[live], gate_chi2)
+        frames = self.t[live]
+        return np.array([np.unique(frames[d2[i] <= gate_chi2]).size for i in range(k)], dtype=int)

@@ -8,7 +8,7 @@ import pytest
 from scipy.stats import chi2
 
 from reloc.association import AssociationConfig
-from reloc.persistence import RecentDetections
+from reloc.persistence import RecentDetections, RecentFrames
 
 GATE = AssociationConfig().gate_chi2
 R = np.diag([0.03, 0.02, 0.02]) ** 2  # a rock 6-8 m away: stereo covariance, world frame
@@ -149,3 +149,47 @@ def test_an_uncertain_pair_needs_two_earlier_detections_at_the_same_place():
     assert not rd2.confirm(np.array([4]), 10.0, x[None], R[None], 2.5, GATE, 0.0, 2)[0]
     rd2.confirm(np.array([4]), 11.0, (x + [0.6, 0, 0])[None], R[None], 2.5, GATE, 0.0, 2)  # elsewhere in the gate
     assert not rd2.confirm(np.array([4]), 12.0, (x + 0.01)[None], R[None], 2.5, GATE, 0.0, 2)[0]  # one of two
+
+
+def test_recent_frames_count_earlier_frames_with_a_detection_at_the_place_whatever_became_of_it():
+    """RecentFrames (AssociationConfig.persistence_any_detection): per detection, the distinct
+    earlier frames of the window that held a detection at its world position, associated or not."""
+    rf = RecentFrames()
+    x = np.array([5.0, 1.0, 0.2])
+    far = np.array([9.0, -3.0, 0.1])
+    count = lambda t, pts, window=2.5, slack=0.0: rf.count(t, np.reshape(pts, (-1, 3)),
+                                                         np.tile(R, (len(np.reshape(pts, (-1, 3))), 1, 1)),
+                                                         window, GATE, slack)
+    assert count(10.0, x).tolist() == [0] and len(rf) == 0  # nothing recorded yet
+    rf.record(10.0, np.array([x, x + [0.01, 0, 0]]), np.tile(R, (2, 1, 1)), 2.5)  # two points, one frame
+    rf.record(11.0, np.array([x + [0.02, -0.01, 0], far]), np.tile(R, (2, 1, 1)), 2.5)
+    assert count(12.0, [x, far, x + [0.5, 0, 0]]).tolist() == [2, 1, 0]  # frames, not detections
+    assert count(11.0, x).tolist() == [1]  # the frame of t itself is not "before"
+    assert count(12.0, x, window=1.5).tolist() == [1]  # the frame at 10 s is out of a 1.5 s window
+    assert count(12.0, x + [0.25, 0, 0]).tolist() == [0]
+    assert count(12.0, x + [0.25, 0, 0], slack=0.1**2).tolist() == [2]  # the pose change between frames
+    rf.record(20.0, far[None], R[None], 2.5)  # recording forgets frames older than the window
+    assert len(rf) == 1 and count(20.5, x).tolist() == [0] and count(20.5, far).tolist() == [1]
+    snap = rf.copy()
+    rf.record(21.0, x[None], R[None], 2.5)
+    assert len(snap) == 1 and len(rf) == 2
+    assert count(22.0, np.zeros((0, 3))).shape == (0,)
+
+
+def test_clutter_seldom_agrees_with_two_earlier_frames_by_place():
+    """Sampled: clutter spread over a 3 x 3 m gate, three points a frame, agrees by place with two
+    earlier frames (what an uncertain pair needs) in far fewer draws than a rock does (always
+    within its covariance: at the gate's 99 %, squared)."""
+    rng = np.random.default_rng(3)
+    rock, n, clutter_ok, rock_ok = np.array([6.0, 0.0, 0.0]), 400, 0, 0
+    for _ in range(n):
+        rf = RecentFrames()
+        for t in (0.0, 1.0):
+            pts = np.vstack([rock + rng.multivariate_normal(np.zeros(3), R),
+                             rock + rng.uniform(-1.5, 1.5, (3, 3)) * [1, 1, 0.1]])
+            rf.record(t, pts, np.tile(R, (4, 1, 1)), 2.5)
+        rock_ok += int(rf.count(2.0, (rock + rng.multivariate_normal(np.zeros(3), R))[None], R[None], 2.5, GATE)[0] >= 2)
+        clutter = rock + rng.uniform(-1.5, 1.5, 3) * [1, 1, 0.1]
+        clutter_ok += int(rf.count(2.0, clutter[None], R[None], 2.5, GATE)[0] >= 2)
+    assert rock_ok / n > 0.95
+    assert clutter_ok / n < 0.02

@@ -87,7 +87,8 @@ class LandmarkConfig:
     # of 6 blind windows (NEES 4.2-27.8); with two in none (0.35-3.46), its sigma growing as in a
     # camera blackout (docs/sim.md)
     association: AssociationConfig = field(
-        default_factory=lambda: AssociationConfig(persistence_s=2.5, persistence_n_uncertain=2))
+        default_factory=lambda: AssociationConfig(persistence_s=2.5, persistence_n_uncertain=2,
+                                          persistence_any_detection=True))
     min_obs_to_insert: PositiveInt = 2  # observations (on distinct keyframes) before a rock enters the graph
     candidate_timeout_s: Positive = 10.0  # a candidate not confirmed within this is dropped
     huber_k: Positive = 3.0  # on the whitened 3-dof residual

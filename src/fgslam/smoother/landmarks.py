@@ -22,7 +22,7 @@ from reloc.budget import innovation_trace, select_observations
 from reloc.covariance import psd_part
 from reloc.geometry import skew
 from reloc.landmark_model import point_in_base, point_to_world
-from reloc.persistence import RecentDetections, persistence_agree, persistence_slack
+from reloc.persistence import RecentDetections, RecentFrames, persistence_agree, persistence_slack
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
 _VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
@@ -113,6 +113,7 @@ class LandmarkStore:
         self.n_budget_skipped = 0  # observations of graph landmarks left out by the budget
         self.n_budget_new_skipped = 0  # insertions deferred by the budget (the candidate waits)
         self.recent = RecentDetections()  # recent detections per landmark (reloc.persistence)
+        self.frames = RecentFrames()  # every recent detection by place (persistence_any_detection)
         self.n_not_persistent = 0  # associations left out: no detection at that place just before
         # live records near the last keyframe, in creation order (see set_view_cache)
         self._view: list[LandmarkRecord] | None = None
@@ -213,9 +214,14 @@ class LandmarkStore:
         n_not_persistent = 0
         if matched.size and ac.persistence_s > 0:  # clutter inside a gate: not seen there before
             ids = [cands[int(a.landmark_of[i])].lid for i in matched]
+            slack = persistence_slack(ac, z_base[matched])
+            need = persistence_agree(ac, S_hat[a.landmark_of[matched]], R_z[matched])
             ok = self.recent.confirm(ids, t, l_new[matched], c_new[matched], ac.persistence_s, ac.gate_chi2,
-                                     persistence_slack(ac, z_base[matched]),
-                                     persistence_agree(ac, S_hat[a.landmark_of[matched]], R_z[matched]))
+                                     slack, need)
+            retry = np.flatnonzero(~ok & (need > 1)) if ac.persistence_any_detection else ()
+            if len(retry):  # uncertain pairs: a detection at that place in as many frames, associated or not
+                ok[retry] = self.frames.count(t, l_new[matched][retry], c_new[matched][retry], ac.persistence_s,
+                                              ac.gate_chi2, slack[retry]) >= need[retry]
             n_not_persistent = int(matched.size - ok.sum())
             self.n_not_persistent += n_not_persistent
             matched = matched[ok]
@@ -255,6 +261,8 @@ class LandmarkStore:
                 if self._view is not None:
                     self._view.append(rec)
                 self.next_id += 1
+        if ac.persistence_s > 0 and ac.persistence_any_detection:
+            self.frames.record(t, l_new, c_new, ac.persistence_s)
         n_new = int(a.is_new.sum())
         return FrameAssociation(observed, to_insert, int(matched.size), n_new,
                                 n_rejected + a.n_ambiguous + a.n_out_of_range + int(skipped.size) + n_not_persistent)
