@@ -74,8 +74,8 @@ class AssociationConfig:
     # 95-126 s, 2 m away, took it from 0.16 to 0.44 m off at a 0.10 m sigma); a rock detected
     # again frame after frame passes one frame later
     persistence_n_uncertain: Annotated[int, Ge(1)] = 1
-    # an uncertain pair whose landmark lacks those agreeing detections passes when as many earlier
-    # frames held a detection at its world position all the same, associated or not
+    # an uncertain pair whose landmark has no detection at all in the window passes when as many
+    # earlier frames held a detection at its world position all the same, associated or not
     # (reloc.persistence.RecentFrames): back on a sparse field after a long blind stretch, frames
     # of one or two detections are refused whole (min_pairs_uncertain) and the landmarks are
     # associated only every few frames, never twice in the window (iSAM2, ERC MY2021 seed 0, 120 m:

@@ -139,6 +139,12 @@ class RecentDetections:
             self.sweep(t)
         return ok
 
+    def seen(self, ids: np.ndarray, t: float, window_s: float) -> np.ndarray:
+        """(k,) bool: whether each landmark of ``ids`` has a detection recorded within ``window_s``
+        before ``t`` (strictly before), wherever it was."""
+        return np.array([any(t - window_s <= e[0] < t for e in self._d.get(int(lid), ()))
+                         for lid in np.asarray(ids, dtype=int).reshape(-1)], dtype=bool)
+
     def sweep(self, t: float) -> None:
         """Forget the landmarks with no detection within the longest window used so far."""
         self._t_sweep = t
@@ -151,10 +157,9 @@ class RecentDetections:
             self._d.pop(int(lid), None)
 
 
-class PendingDetections:
-    """First sightings: detections that would start a landmark, kept for a few seconds until a
-    later frame confirms one at the same world position (see module doc). :meth:`copy` gives an
-    independent snapshot."""
+class _Points:
+    """Detections in world coordinates with their times: ``t`` (n,), ``xyz`` (n, 3), ``cov``
+    (n, 3, 3). :meth:`copy` gives an independent snapshot."""
 
     def __init__(self) -> None:
         self.t = np.zeros(0)
@@ -164,10 +169,16 @@ class PendingDetections:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
-    def copy(self) -> PendingDetections:
-        other = PendingDetections()
+    def copy(self):
+        other = type(self)()
         other.t, other.xyz, other.cov = self.t.copy(), self.xyz.copy(), self.cov.copy()
         return other
+
+
+class PendingDetections(_Points):
+    """First sightings: detections that would start a landmark, kept for a few seconds until a
+    later frame confirms one at the same world position (see module doc). :meth:`copy` gives an
+    independent snapshot."""
 
     def confirm(self, t: float, xyz_world: np.ndarray, cov_world: np.ndarray, window_s: float,
                 gate_chi2: float, slack_var=0.0) -> np.ndarray:
@@ -200,7 +211,7 @@ class PendingDetections:
         return ok
 
 
-class RecentFrames:
+class RecentFrames(_Points):
     """Every detection of the last seconds in world coordinates, frame by frame, whatever became
     of it (associated, ambiguous, refused as one of too few uncertain pairs). An uncertain pair
     asks for ``persistence_n_uncertain`` earlier detections of its landmark that agree; where the
@@ -210,20 +221,9 @@ class RecentFrames:
     rover is never re-placed (``AssociationConfig.persistence_any_detection``). What the rule is
     for holds as well by place: a rock is detected again where it was, clutter is not; this
     counts the earlier frames that held a detection at the pair's world position, associated or
-    not. :meth:`copy` gives an independent snapshot."""
-
-    def __init__(self) -> None:
-        self.t = np.zeros(0)
-        self.xyz = np.zeros((0, 3))
-        self.cov = np.zeros((0, 3, 3))
-
-    def __len__(self) -> int:
-        return int(self.t.shape[0])
-
-    def copy(self) -> RecentFrames:
-        other = RecentFrames()
-        other.t, other.xyz, other.cov = self.t.copy(), self.xyz.copy(), self.cov.copy()
-        return other
+    not (asked only for a landmark with no detection at all in the window: by place, a rock of a
+    dense field in the wide gate of its neighbour would pass as well, which the landmark's own
+    record rules out). :meth:`copy` gives an independent snapshot."""
 
     def record(self, t: float, xyz_world: np.ndarray, cov_world: np.ndarray, window_s: float) -> None:
         """Remember one frame's detections ``xyz_world`` (n, 3), ``cov_world`` (n, 3, 3) at ``t``;

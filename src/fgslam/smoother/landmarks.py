@@ -216,10 +216,11 @@ class LandmarkStore:
             ids = [cands[int(a.landmark_of[i])].lid for i in matched]
             slack = persistence_slack(ac, z_base[matched])
             need = persistence_agree(ac, S_hat[a.landmark_of[matched]], R_z[matched])
+            lost = ~self.recent.seen(ids, t, ac.persistence_s) if ac.persistence_any_detection else None
             ok = self.recent.confirm(ids, t, l_new[matched], c_new[matched], ac.persistence_s, ac.gate_chi2,
                                      slack, need)
-            retry = np.flatnonzero(~ok & (need > 1)) if ac.persistence_any_detection else ()
-            if len(retry):  # uncertain pairs: a detection at that place in as many frames, associated or not
+            retry = np.flatnonzero(~ok & (need > 1) & lost) if lost is not None else ()
+            if len(retry):  # uncertain pairs of landmarks not detected lately: a detection at that place
                 ok[retry] = self.frames.count(t, l_new[matched][retry], c_new[matched][retry], ac.persistence_s,
                                               ac.gate_chi2, slack[retry]) >= need[retry]
             n_not_persistent = int(matched.size - ok.sum())
