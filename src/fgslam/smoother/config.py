@@ -88,7 +88,7 @@ class LandmarkConfig:
     # camera blackout (docs/sim.md)
     association: AssociationConfig = field(
         default_factory=lambda: AssociationConfig(persistence_s=2.5, persistence_n_uncertain=2,
-                                          persistence_any_detection=True))
+                                                  persistence_any_detection=True))
     min_obs_to_insert: PositiveInt = 2  # observations (on distinct keyframes) before a rock enters the graph
     candidate_timeout_s: Positive = 10.0  # a candidate not confirmed within this is dropped
     huber_k: Positive = 3.0  # on the whitened 3-dof residual

@@ -216,11 +216,12 @@ class LandmarkStore:
             ids = [cands[int(a.landmark_of[i])].lid for i in matched]
             slack = persistence_slack(ac, z_base[matched])
             need = persistence_agree(ac, S_hat[a.landmark_of[matched]], R_z[matched])
-            lost = ~self.recent.seen(ids, t, ac.persistence_s) if ac.persistence_any_detection else None
             ok = self.recent.confirm(ids, t, l_new[matched], c_new[matched], ac.persistence_s, ac.gate_chi2,
                                      slack, need)
-            retry = np.flatnonzero(~ok & (need > 1) & lost) if lost is not None else ()
-            if len(retry):  # uncertain pairs of landmarks not detected lately: a detection at that place
+            retry = np.flatnonzero(~ok & (need > 1)) if ac.persistence_any_detection else np.zeros(0, dtype=int)
+            # ... of landmarks with no detection in the window before this frame (seen() looks before t)
+            retry = retry[~self.recent.seen([ids[i] for i in retry], t, ac.persistence_s)] if retry.size else retry
+            if retry.size:  # uncertain pairs of landmarks not detected lately: a detection at that place
                 ok[retry] = self.frames.count(t, l_new[matched][retry], c_new[matched][retry], ac.persistence_s,
                                               ac.gate_chi2, slack[retry]) >= need[retry]
             n_not_persistent = int(matched.size - ok.sum())
