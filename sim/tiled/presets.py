@@ -146,6 +146,10 @@ def backend_calibration(cfg: SimConfig) -> dict:
         return {"ekf": ekf, "isam2": isam2}
     if st.centre_error_frac:
         ekf["rock_cov_scale"] = 4.0
+        # the smoother's association (not its factors): a per-rock centre error does not average
+        # out over frames, as the landmark store's fused covariance assumes (docs/smoother.md,
+        # "The association's rock error")
+        isam2["landmarks"] = {"association_cov_scale": 2.0}
     cal_e: dict = {}
     cal_i: dict = {}
     if st.extrinsic_sigma_deg:

@@ -271,7 +271,7 @@ class Isam2Smoother(LateFixes, Backend):
         ]
         layers = self.kinds.used()
         kind_counts: dict[str, int] = {"n_frames_skipped": 0, "n_budget_skipped": 0, "n_budget_new_skipped": 0,
-                                        "n_not_persistent": 0}
+                                        "n_not_persistent": 0, "n_jc_dropped": 0}
         for layer in layers:
             for k, v in layer.stats().items():
                 kind_counts[k] = kind_counts.get(k, 0) + v

@@ -115,6 +115,7 @@ class LandmarkStore:
         self.recent = RecentDetections()  # recent detections per landmark (reloc.persistence)
         self.frames = RecentFrames()  # every recent detection by place (persistence_any_detection)
         self.n_not_persistent = 0  # associations left out: no detection at that place just before
+        self.n_jc_dropped = 0  # pairs the joint-compatibility test refused
         # live records near the last keyframe, in creation order (see set_view_cache)
         self._view: list[LandmarkRecord] | None = None
         self._view_center = np.zeros(3)
@@ -173,6 +174,7 @@ class LandmarkStore:
         ``cov_growth(t_last)`` (K,) -> (K, 6, 6) adds to each candidate's pose uncertainty what the
         pose gained since the landmark was last seen (see :class:`fgslam.smoother.kinds.KeyframeFrame`)."""
         R, p = T_world_base[:3, :3], T_world_base[:3, 3]
+        R_z = R_z * self.cfg.association_cov_scale  # the association's error model (LandmarkConfig)
         rng = np.linalg.norm(z_base, axis=1)
         usable = rng >= self.cfg.min_range_m
         z_base, R_z, size_m = z_base[usable], R_z[usable], size_m[usable]
@@ -206,6 +208,7 @@ class LandmarkStore:
         else:
             zhat, S_hat, sizes, joint_cov = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), None
         a = associate(z_base, R_z, zhat, S_hat, self.cfg.association, size_m, sizes, joint_cov)
+        self.n_jc_dropped += a.n_jc_dropped
         observed: list[tuple[int, np.ndarray, np.ndarray]] = []
         to_insert: list[LandmarkRecord] = []
         l_new, c_new = point_to_world(R, p, z_base, R_z)

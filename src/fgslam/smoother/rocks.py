@@ -29,6 +29,7 @@ def considered_calibration_cov(config) -> np.ndarray:
     return config.calibration_consider_scale * np.diag(config.calibration.prior_sigmas() ** 2)
 
 
+
 class RockLandmarks:
     """Rocks in the smoother (see module doc)."""
 
@@ -151,4 +152,5 @@ class RockLandmarks:
 
     def stats(self) -> dict:
         return {"n_frames_skipped": self.n_frames_skipped, "n_budget_skipped": self.store.n_budget_skipped,
-                "n_budget_new_skipped": self.store.n_budget_new_skipped, "n_not_persistent": self.store.n_not_persistent}
+                "n_budget_new_skipped": self.store.n_budget_new_skipped, "n_not_persistent": self.store.n_not_persistent,
+                "n_jc_dropped": self.store.n_jc_dropped}
