@@ -97,8 +97,8 @@ class LandmarkConfig:
     # The store fuses a landmark's detections as independent, so its covariance shrinks as 1/n,
     # while an error that persists over frames (a stereo pipeline's per-rock centre error) does
     # not average out: the joint-compatibility test then took the landmarks for better known than
-    # the pose and refused whole frames' worth of good pairs (docs/smoother.md, "Association's
-    # rock error"). The factors keep the detector's covariance
+    # the pose and refused whole frames' worth of good pairs (docs/smoother.md, "The
+    # association's rock error"). The factors keep the detector's covariance
     association_cov_scale: Positive = 1.0
     min_range_m: NonNegative = 0.3
     min_frame_interval_s: NonNegative = 0.95  # rock frames closer than this to the last used one are skipped
