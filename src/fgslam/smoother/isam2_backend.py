@@ -195,14 +195,14 @@ class Isam2Smoother(LateFixes, Backend):
             self._growth_kf, self._growth, self._growth_t = k_now, {}, self.kfs.t
         idx = np.clip(np.searchsorted(self._growth_t, t_last, side="right") - 1, 0, k_now)
         out = np.zeros((len(idx), 6, 6))
-        C_now = self.kfs.online_cov(k_now)
-        for i in np.unique(idx):
-            if i == k_now:
-                continue
-            G = self._growth.get(int(i))
-            if G is None:
-                G = self._growth[int(i)] = cov_world_to_gtsam(self.T_kf[:3, :3], psd_part(C_now - self.kfs.online_cov(i)))
-            out[idx == i] = G
+        used = [int(i) for i in np.unique(idx) if i != k_now]
+        new = [i for i in used if i not in self._growth]
+        if new:  # one batched eigen-decomposition for the keyframes not cached yet
+            C_now = self.kfs.online_cov(k_now)
+            G = cov_world_to_gtsam(self.T_kf[:3, :3], psd_part(C_now - np.array([self.kfs.online_cov(i) for i in new])))
+            self._growth.update(zip(new, G))
+        for i in used:
+            out[idx == i] = self._growth[i]
         return out
 
     def _motion_since_kf(self, acc: OdometryAccumulator | None = None, T_rel: np.ndarray | None = None,
