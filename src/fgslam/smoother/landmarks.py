@@ -174,10 +174,14 @@ class LandmarkStore:
         ``cov_growth(t_last)`` (K,) -> (K, 6, 6) adds to each candidate's pose uncertainty what the
         pose gained since the landmark was last seen (see :class:`fgslam.smoother.kinds.KeyframeFrame`)."""
         R, p = T_world_base[:3, :3], T_world_base[:3, 3]
-        R_z = R_z * self.cfg.association_cov_scale  # the association's error model (LandmarkConfig)
+        # the association's error model (LandmarkConfig.association_cov_scale): the detections' and
+        # the landmarks' covariances times s in the gates, the joint test and the persistence
+        # test; the records fuse the detector's, which the landmark map reports
+        s = self.cfg.association_cov_scale
+        R_det, R_z = R_z, R_z * s
         rng = np.linalg.norm(z_base, axis=1)
         usable = rng >= self.cfg.min_range_m
-        z_base, R_z, size_m = z_base[usable], R_z[usable], size_m[usable]
+        z_base, R_z, R_det, size_m = z_base[usable], R_z[usable], R_det[usable], size_m[usable]
         z_kf, R_kf = z_kf[usable], R_kf[usable]
         n_rejected = int((~usable).sum())
         cands = self.in_view(R, p)
@@ -185,7 +189,7 @@ class LandmarkStore:
             l_world = np.array([r.xyz_world_m for r in cands])
             zhat = point_in_base(R, p, l_world)
             C_l = np.array([r.cov_world_m2 for r in cands])
-            S_hat = R.T @ C_l @ R
+            S_hat = s * (R.T @ C_l @ R)
             # pose part in the body frame: dz = [zhat]x domega - dv
             H = np.zeros((len(cands), 3, 6))
             H[:, :, :3] = skew(zhat)
@@ -211,7 +215,8 @@ class LandmarkStore:
         self.n_jc_dropped += a.n_jc_dropped
         observed: list[tuple[int, np.ndarray, np.ndarray]] = []
         to_insert: list[LandmarkRecord] = []
-        l_new, c_new = point_to_world(R, p, z_base, R_z)
+        l_new, c_det = point_to_world(R, p, z_base, R_det)
+        c_new = s * c_det  # the detections' world covariance as the association takes it
         matched = np.flatnonzero(a.landmark_of >= 0)
         ac = self.cfg.association
         n_not_persistent = 0
@@ -239,7 +244,7 @@ class LandmarkStore:
                 rec.t_last = t
             matched = np.setdiff1d(matched, skipped)
         if matched.size:
-            self._fuse_batch([cands[int(a.landmark_of[i])] for i in matched], l_new[matched], c_new[matched],
+            self._fuse_batch([cands[int(a.landmark_of[i])] for i in matched], l_new[matched], c_det[matched],
                              size_m[matched], t)
         for i in matched:
             rec = cands[int(a.landmark_of[i])]
@@ -257,7 +262,7 @@ class LandmarkStore:
             to_insert = [to_insert[k] for k in np.sort(order[:room])]
         for i in range(z_base.shape[0]):
             if a.landmark_of[i] < 0 and a.is_new[i]:
-                rec = LandmarkRecord(self.next_id, l_new[i], c_new[i], float(size_m[i]), 1, t, t)
+                rec = LandmarkRecord(self.next_id, l_new[i], c_det[i], float(size_m[i]), 1, t, t)
                 rec.pending.append((kf, z_kf[i], R_kf[i]))
                 self.records[rec.lid] = rec
                 self.live[rec.lid] = rec
