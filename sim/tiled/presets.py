@@ -149,7 +149,7 @@ def backend_calibration(cfg: SimConfig) -> dict:
         # the smoother's association (not its factors): a per-rock centre error does not average
         # out over frames, as the landmark store's fused covariance assumes (docs/smoother.md,
         # "The association's rock error")
-        isam2["landmarks"] = {"association_cov_scale": 2.0}
+        isam2["landmarks"] = {"association_cov_scale": 1.5}
     cal_e: dict = {}
     cal_i: dict = {}
     if st.extrinsic_sigma_deg:

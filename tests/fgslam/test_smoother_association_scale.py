@@ -5,7 +5,7 @@ The kilometre presets' stereo puts each rock's centre a per-rock fraction of its
 the camera (``centre_error_frac``), which does not average out over frames as the landmark
 store's fused covariance assumes. At the detector's covariance the joint-compatibility test took
 the landmarks for better known than the pose and refused good pairs by the hundred; the presets'
-``backend.yaml`` sets the association's error model to twice the detector's (the factors keep
+``backend.yaml`` sets the association's error model to 1.5 times the detector's (the factors keep
 the detector's), and the smoother then refuses far fewer, at the same accuracy.
 """
 
@@ -44,19 +44,19 @@ def _run(overrides: dict) -> tuple[float, dict]:
 
 def test_presets_set_the_association_error_model_and_leave_the_factors_at_the_detector():
     _, _, isam2 = _stretch()
-    assert isam2["landmarks"] == {"association_cov_scale": 2.0}
+    assert isam2["landmarks"] == {"association_cov_scale": 1.5}
     assert LandmarkConfig().association_cov_scale == 1.0  # the yards' worlds have no such error
     with pytest.raises(Exception, match="association_cov_scale"):
         LandmarkConfig(association_cov_scale=0.0)
 
 
 @pytest.mark.slow
-def test_persistent_rock_error_no_longer_refuses_good_pairs_at_twice_the_detector_covariance():
+def test_persistent_rock_error_no_longer_refuses_good_pairs_at_the_presets_error_model():
     """rocky-1km seed 0, 20 m (167 s): the joint test refused 897 pairs at the detector's
-    covariance and 162 at twice it; the ATE 0.023 and 0.028 m."""
+    covariance and 308 at 1.5 times it; the ATE 0.023 and 0.028 m."""
     _, _, isam2 = _stretch()
     ate2, ex2 = _run(isam2)
     ate1, ex1 = _run({**isam2, "landmarks": {"association_cov_scale": 1.0}})
     assert ex1["n_jc_dropped"] > 500, ex1["n_jc_dropped"]
-    assert ex2["n_jc_dropped"] < ex1["n_jc_dropped"] / 3, (ex1["n_jc_dropped"], ex2["n_jc_dropped"])
+    assert ex2["n_jc_dropped"] < ex1["n_jc_dropped"] / 2, (ex1["n_jc_dropped"], ex2["n_jc_dropped"])
     assert ate2 < 0.05 and ate2 < 1.5 * ate1, (ate1, ate2)
