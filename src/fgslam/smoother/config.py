@@ -98,7 +98,9 @@ class LandmarkConfig:
     # while an error that persists over frames (a stereo pipeline's per-rock centre error) does
     # not average out: the joint-compatibility test then took the landmarks for better known than
     # the pose and refused whole frames' worth of good pairs (docs/smoother.md, "The
-    # association's rock error"). The factors keep the detector's covariance
+    # association's rock error"). The factors keep the detector's covariance. The crater layer's
+    # store takes it too (its settings are these with the crater ones replaced): a crater's rim
+    # centre error persists over frames in the same way
     association_cov_scale: Positive = 1.0
     min_range_m: NonNegative = 0.3
     min_frame_interval_s: NonNegative = 0.95  # rock frames closer than this to the last used one are skipped

@@ -29,7 +29,6 @@ def considered_calibration_cov(config) -> np.ndarray:
     return config.calibration_consider_scale * np.diag(config.calibration.prior_sigmas() ** 2)
 
 
-
 class RockLandmarks:
     """Rocks in the smoother (see module doc)."""
 
