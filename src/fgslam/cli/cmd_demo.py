@@ -20,7 +20,8 @@ DEMO_WORLD = "rocky-1km"
 # on a kilometre preset, when --distance-m is not given. rocky-1km seed 0, 2 cores, unloaded
 # (2026-12-06): 250 m in 4 min 38 s with the set-up check and the simulation (EKF 0.40 m -> 0.11 m
 # with fixes, iSAM2 0.46 -> 0.07, 208 fixes, first at 10 s); a slower day, back to back: 4:59 then
-# 5:12 with iSAM2's re-placement by place (iSAM2 + reloc 0.064 m); README, "What the demo shows"
+# 5:12 with iSAM2's re-placement by place (iSAM2 + reloc 0.064 m); the next, 4:51 then 4:56 with
+# the smoother's association error model (iSAM2 0.518 -> 0.333 m); README, "What the demo shows"
 DEMO_DISTANCE_M = 250.0
 
 
