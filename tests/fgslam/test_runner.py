@@ -532,3 +532,39 @@ def test_a_front_end_computed_once_gives_every_pass_its_own_run(stream):
     assert not steps.matches(stream.measurements, replace(cfg, speed_source="wheel"))
     assert not steps.matches(stream.measurements, replace(cfg, slip=replace(cfg.slip, enabled=False)))
     assert not steps.R0.flags.writeable and not steps.scalars.flags.writeable  # shared: never written
+
+
+class _FreezeProbe(DeadReckoning):
+    """Dead reckoning that records the collector's frozen count at each frame."""
+
+    def __init__(self, initial):
+        super().__init__(initial)
+        self.frozen: list[int] = []
+
+    def observe(self, obs):
+        import gc
+
+        self.frozen.append(gc.get_freeze_count())
+        return super().observe(obs)
+
+
+def test_the_run_keeps_its_starting_objects_out_of_the_collectors_passes(stream):
+    import gc
+
+    from fgslam.runner import RunnerConfig, frozen_heap
+
+    before = gc.get_freeze_count()
+    probe = _FreezeProbe(stream.initial)
+    res = run_backend(probe, stream.measurements)
+    # the stream (thousands of measurement objects) is frozen while the pass runs, and let go after
+    assert min(probe.frozen) > len(stream.measurements) and gc.get_freeze_count() == before
+    off = _FreezeProbe(stream.initial)
+    res_off = run_backend(off, stream.measurements, config=RunnerConfig(freeze_heap=False))
+    assert max(off.frozen) == before
+    np.testing.assert_array_equal(res.final.T_world_base, res_off.final.T_world_base)  # same estimate
+    with frozen_heap():  # nested (a thread's pass inside another's): the outer one unfreezes
+        n = gc.get_freeze_count()
+        with frozen_heap():
+            assert gc.get_freeze_count() == n
+        assert gc.get_freeze_count() == n > 0
+    assert gc.get_freeze_count() == before
