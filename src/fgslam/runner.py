@@ -259,30 +259,32 @@ def run_backend(
 
 
 _FREEZE_LOCK = threading.Lock()
-_freeze_depth = 0  # passes inside frozen_heap in this process (threads may run several)
+_freeze = {"depth": 0, "ours": False}  # passes inside frozen_heap (threads may run several); did we freeze
 
 
 @contextlib.contextmanager
 def frozen_heap(enabled: bool = True):
     """While inside: the objects alive on entry (after a collection) are frozen (``gc.freeze``),
     so the collector's full passes walk only what the run creates; the first to enter freezes,
-    the last to leave unfreezes (a frozen cycle that becomes garbage is collected afterwards)."""
-    global _freeze_depth
+    the last to leave unfreezes (a frozen cycle that becomes garbage is collected afterwards). A
+    process that froze objects itself keeps its own freeze: nothing is done then."""
     if not enabled:
         yield
         return
     with _FREEZE_LOCK:
-        if _freeze_depth == 0:
+        if _freeze["depth"] == 0 and gc.get_freeze_count() == 0:
             gc.collect()
             gc.freeze()
-        _freeze_depth += 1
+            _freeze["ours"] = True
+        _freeze["depth"] += 1
     try:
         yield
     finally:
         with _FREEZE_LOCK:
-            _freeze_depth -= 1
-            if _freeze_depth == 0:
+            _freeze["depth"] -= 1
+            if _freeze["depth"] == 0 and _freeze["ours"]:
                 gc.unfreeze()
+                _freeze["ours"] = False
 
 
 def shared_steps(measurements: list, config: RunnerConfig | None = None) -> SharedSteps:
