@@ -11,7 +11,6 @@ the detector's), and the smoother then refuses far fewer, at the same accuracy.
 
 from __future__ import annotations
 
-import dataclasses
 from functools import cache
 
 import numpy as np
@@ -47,7 +46,9 @@ def _run(overrides: dict) -> tuple[float, dict]:
 
 
 def test_presets_set_the_association_error_model_and_the_yards_keep_the_detectors():
-    _, _, isam2 = _stretch()
+    from sim.tiled.presets import backend_calibration, preset_config
+
+    isam2 = backend_calibration(preset_config("rocky-1km", 0))["isam2"]  # what `fgslam sim` writes
     assert isam2["landmarks"] == {"association_cov_scale": 1.5}
     assert LandmarkConfig().association_cov_scale == 1.0  # the yards' worlds have no such error
     with pytest.raises(SmootherError, match="association_cov_scale"):
@@ -56,7 +57,7 @@ def test_presets_set_the_association_error_model_and_the_yards_keep_the_detector
 
 def _two_frames(scale: float):
     """A store at ``scale`` after two frames of the same three rocks, 1 cm apart."""
-    store = LandmarkStore(dataclasses.replace(LandmarkConfig(), association_cov_scale=scale))
+    store = LandmarkStore(LandmarkConfig(association_cov_scale=scale))
     z = np.array([[4.0, -1.0, 0.1], [6.0, 1.5, 0.2], [8.0, 0.0, 0.1]])
     R = np.tile(np.diag([0.05, 0.02, 0.02]) ** 2, (3, 1, 1))
     for k, dz in enumerate((0.0, 0.01)):
