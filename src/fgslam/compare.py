@@ -27,7 +27,9 @@ from fgslam.long_traverse import (
     LongTraverseConfig,
     backend_overrides_for,
     check_window,
+    drop_setting,
     evaluation_truth,
+    has_setting,
     is_long,
     per_world_keys,
     runner_config_for,
@@ -122,9 +124,12 @@ def resolved_compare_config(cfg: CompareConfig) -> dict:
     out = config_to_dict(cfg)
     out["backend_overrides"] = {}
     for name in cfg.backends:
-        given, per_world = cfg.backend_overrides.get(name) or {}, per_world_keys(name)
-        out["backend_overrides"][name] = {k: v for k, v in resolved_config(name, given).items()
-                                          if k in given or k not in per_world}
+        given = cfg.backend_overrides.get(name) or {}
+        resolved = resolved_config(name, given)
+        for path in per_world_keys(name):
+            if not has_setting(given, path):
+                drop_setting(resolved, path)
+        out["backend_overrides"][name] = resolved
     return out
 
 

@@ -17,6 +17,7 @@ An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 from typing import Literal
@@ -25,6 +26,10 @@ from fgslam.errors import FgslamError
 from fgslam.runner import RunnerConfig
 from reloc.backend import Trajectory
 from reloc.config import NonNegative, Positive, checked
+
+KEYFRAME_INTERVAL_S = 2.0  # LongTraverseConfig.isam2_keyframe_interval_s
+FRAMES_PER_KEYFRAME = 0.95  # a rock frame per keyframe: min_frame_interval_s this times the interval
+PERSISTENCE_FRAMES = 2.5  # the persistence test spans the two frames before: persistence_s this times it
 
 
 class LongTraverseError(FgslamError):
@@ -46,6 +51,14 @@ class LongTraverseConfig:
     # backend.yaml sizes them, with the gyro's rotation noise) the position NEES is 0.96-2.46 on
     # the presets' first 400 m (docs/smoother.md)
     isam2_calibration_mode: Literal["estimate", "consider"] = "estimate"
+    # iSAM2's keyframe interval on a long traverse (KeyframeConfig.interval_s; 1 s on a yard), with
+    # one rock frame per keyframe (LandmarkConfig.min_frame_interval_s, 0.95 of it) and the
+    # persistence test spanning the two frames before (AssociationConfig.persistence_s, 2.5 of it).
+    # Each keyframe update re-eliminates the cliques from the landmarks it observes to the root,
+    # a path through every keyframe since they were first seen: halving the keyframes shortens
+    # that path and the number of updates, and the smoother's time fell 3.6-4.3x
+    # (docs/smoother.md, "Keyframes every 2 s on a long traverse")
+    isam2_keyframe_interval_s: Positive = KEYFRAME_INTERVAL_S
     # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
     # rock that far is behind a rover that does not come back
     ekf_forget_distance_m: Positive = 40.0
@@ -120,27 +133,72 @@ def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: floa
 
 
 def _long_settings(name: str, cfg: LongTraverseConfig) -> dict:
-    """What back-end ``name`` gets on a long traverse (empty for one that gets nothing)."""
-    return {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s, "calibration_mode": cfg.isam2_calibration_mode},
+    """What back-end ``name`` gets on a long traverse (empty for one that gets nothing), as a
+    nested mapping of the back-end's config."""
+    kf = cfg.isam2_keyframe_interval_s
+    return {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s, "calibration_mode": cfg.isam2_calibration_mode,
+                      "keyframes": {"interval_s": kf},
+                      "landmarks": {"min_frame_interval_s": FRAMES_PER_KEYFRAME * kf,
+                                    "association": {"persistence_s": PERSISTENCE_FRAMES * kf}}},
             "ekf": {"forget_distance_m": cfg.ekf_forget_distance_m,
                     "trajectory_period_s": cfg.ekf_trajectory_period_s,
                     "keep_seen_s": cfg.ekf_keep_seen_s}}.get(name, {})
 
 
-def per_world_keys(name: str) -> frozenset[str]:
-    """The settings of back-end ``name`` that :func:`backend_overrides_for` decides per stream
-    (a comparison's worlds may be long or short): a saved config that wrote them out as explicit
-    values would take them from the long-traverse rule when given back."""
-    return frozenset(_long_settings(name, LongTraverseConfig()))
+def _leaves(tree: dict, prefix: tuple[str, ...] = ()):
+    """(path, value) of every leaf of a nested mapping."""
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, (*prefix, k))
+        else:
+            yield (*prefix, k), v
+
+
+def has_setting(tree: dict | None, path: tuple[str, ...]) -> bool:
+    """Whether the nested mapping ``tree`` sets ``path`` (a leaf, or a section above it)."""
+    node = tree
+    for k in path:
+        if not isinstance(node, dict) or k not in node:
+            return False
+        node = node[k]
+    return True
+
+
+def drop_setting(tree: dict, path: tuple[str, ...]) -> None:
+    """Remove ``path`` from the nested mapping ``tree`` where it is set (in place)."""
+    *parents, leaf = path
+    node = tree
+    for k in parents:
+        node = node.get(k) if isinstance(node, dict) else None
+    if isinstance(node, dict):
+        node.pop(leaf, None)
+
+
+def per_world_keys(name: str) -> frozenset[tuple[str, ...]]:
+    """The settings of back-end ``name`` (paths into its config) that :func:`backend_overrides_for`
+    decides per stream (a comparison's worlds may be long or short): a saved config that wrote
+    them out as explicit values would take them from the long-traverse rule when given back."""
+    return frozenset(path for path, _ in _leaves(_long_settings(name, LongTraverseConfig())))
 
 
 def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
                           cfg: LongTraverseConfig) -> dict | None:
     """The overrides back-end ``name`` runs with on a stream of ``duration_s``: on a long
-    traverse iSAM2 gets ``fixed_lag_s`` and ``calibration_mode`` and the EKF ``forget_distance_m``,
-    ``trajectory_period_s`` and ``keep_seen_s``, each unless the overrides set it; otherwise unchanged."""
+    traverse iSAM2 gets ``fixed_lag_s``, ``calibration_mode`` and its keyframe and rock-frame
+    intervals (:class:`LongTraverseConfig`) and the EKF ``forget_distance_m``,
+    ``trajectory_period_s`` and ``keep_seen_s``, each unless the overrides set it (setting by
+    setting: an override of ``landmarks.association_cov_scale`` leaves the frame interval to the
+    rule); otherwise unchanged."""
     defaults = _long_settings(name, cfg)
     if not defaults or not is_long(duration_s, cfg):
         return overrides
-    add = {k: v for k, v in defaults.items() if not (overrides and k in overrides)}
-    return {**(overrides or {}), **add} if add else overrides
+    add = [(path, v) for path, v in _leaves(defaults) if not has_setting(overrides, path)]
+    if not add:
+        return overrides
+    out = copy.deepcopy(overrides or {})
+    for path, v in add:
+        node = out
+        for k in path[:-1]:
+            node = node.setdefault(k, {})
+        node[path[-1]] = v
+    return out

@@ -18,14 +18,22 @@ from reloc.measurements import CmdVel
 
 
 def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
-    cfg = LongTraverseConfig(min_duration_s=1800.0, isam2_fixed_lag_s=90.0)
+    cfg = LongTraverseConfig(min_duration_s=1800.0, isam2_fixed_lag_s=90.0, isam2_keyframe_interval_s=2.0)
     assert backend_overrides_for("isam2", None, 1000.0, cfg) is None  # a yard: full history
-    long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "estimate"}
+    long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "estimate", "keyframes": {"interval_s": 2.0},
+                  "landmarks": {"min_frame_interval_s": 1.9, "association": {"persistence_s": 5.0}}}
     assert backend_overrides_for("isam2", None, 3600.0, cfg) == long_isam2
     over = {"calibration": {"yaw_sigma_deg": 0.15}}
     assert backend_overrides_for("isam2", over, 3600.0, cfg) == {**over, **long_isam2}
-    assert backend_overrides_for("isam2", {"fixed_lag_s": 0.0, "calibration_mode": "consider"}, 3600.0, cfg) == {
-        "fixed_lag_s": 0.0, "calibration_mode": "consider"}
+    assert over == {"calibration": {"yaw_sigma_deg": 0.15}}  # the caller's mapping is not changed
+    explicit = {"fixed_lag_s": 0.0, "calibration_mode": "consider", "keyframes": {"interval_s": 1.0},
+                "landmarks": {"min_frame_interval_s": 0.95, "association": {"persistence_s": 2.5}}}
+    assert backend_overrides_for("isam2", explicit, 3600.0, cfg) is explicit
+    # setting by setting: a section set for another reason still gets the rule's other settings
+    scaled = {"landmarks": {"association_cov_scale": 1.5}, "keyframes": {"interval_s": 3.0}}
+    assert backend_overrides_for("isam2", scaled, 3600.0, cfg) == {
+        "fixed_lag_s": 90.0, "calibration_mode": "estimate", "keyframes": {"interval_s": 3.0},
+        "landmarks": {"association_cov_scale": 1.5, "min_frame_interval_s": 1.9, "association": {"persistence_s": 5.0}}}
     consider = LongTraverseConfig(isam2_calibration_mode="consider")
     assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
     assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
@@ -35,6 +43,21 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     assert backend_overrides_for("ekf", over, 1000.0, cfg) is over
     assert backend_overrides_for("dr", None, 3600.0, cfg) is None
     assert backend_overrides_for("isam2", None, float("nan"), cfg) is None  # unknown span
+
+
+def test_the_long_traverse_keyframe_settings_reach_the_smoother():
+    from fgslam.backends.registry import backend_config
+
+    smoother = backend_config("isam2", backend_overrides_for("isam2", {"landmarks": {"association_cov_scale": 1.5}},
+                                                              3600.0, LongTraverseConfig()))
+    assert smoother.keyframes.interval_s == 2.0
+    assert smoother.landmarks.min_frame_interval_s == pytest.approx(1.9)
+    assert smoother.landmarks.association.persistence_s == pytest.approx(5.0)
+    assert smoother.landmarks.association.persistence_n_uncertain == 2  # the smoother's own, kept
+    assert smoother.landmarks.association_cov_scale == 1.5
+    yard = backend_config("isam2", backend_overrides_for("isam2", None, 600.0, LongTraverseConfig()))
+    assert (yard.keyframes.interval_s, yard.landmarks.min_frame_interval_s) == (1.0, 0.95)
+    assert yard.landmarks.association.persistence_s == 2.5
 
 
 def test_a_window_shorter_than_the_fix_latency_is_refused():
