@@ -27,7 +27,7 @@ from fgslam.runner import RunnerConfig
 from reloc.backend import Trajectory
 from reloc.config import NonNegative, Positive, checked
 
-KEYFRAME_INTERVAL_S = 2.0  # LongTraverseConfig.isam2_keyframe_interval_s
+KEYFRAME_INTERVAL_S = 1.0  # LongTraverseConfig.isam2_keyframe_interval_s (KeyframeConfig's default)
 FRAMES_PER_KEYFRAME = 0.95  # a rock frame per keyframe: min_frame_interval_s this times the interval
 PERSISTENCE_FRAMES = 2.5  # the persistence test spans the two frames before: persistence_s this times it
 
@@ -51,13 +51,16 @@ class LongTraverseConfig:
     # backend.yaml sizes them, with the gyro's rotation noise) the position NEES is 0.96-2.46 on
     # the presets' first 400 m (docs/smoother.md)
     isam2_calibration_mode: Literal["estimate", "consider"] = "estimate"
-    # iSAM2's keyframe interval on a long traverse (KeyframeConfig.interval_s; 1 s on a yard), with
-    # one rock frame per keyframe (LandmarkConfig.min_frame_interval_s, 0.95 of it) and the
-    # persistence test spanning the two frames before (AssociationConfig.persistence_s, 2.5 of it).
-    # Each keyframe update re-eliminates the cliques from the landmarks it observes to the root,
-    # a path through every keyframe since they were first seen: halving the keyframes shortens
-    # that path and the number of updates, and the smoother's time fell 3.6-4.3x
-    # (docs/smoother.md, "Keyframes every 2 s on a long traverse")
+    # iSAM2's keyframe interval on a long traverse (KeyframeConfig.interval_s), with one rock frame
+    # per keyframe (LandmarkConfig.min_frame_interval_s, 0.95 of it) and the persistence test
+    # spanning the two frames before (AssociationConfig.persistence_s, 2.5 of it), each derived
+    # from the keyframe interval the smoother runs with (an explicit keyframes.interval_s in its
+    # overrides included) unless set. Each keyframe update re-eliminates the cliques from the
+    # landmarks it observes to the root, a path through every keyframe since they were first
+    # seen: at 2 s the smoother's time falls ~5x and the ATE with fixes is the same on rocky-1km,
+    # plains-2km and cratered-3km, but without fixes it drifts more on 10 of 12 runs (+11 %
+    # summed at 500 m) and where fixes are rare (sparse-5km) it loses them, so 1 s stays the
+    # default (docs/smoother.md, "Keyframes every 2 s on a long traverse")
     isam2_keyframe_interval_s: Positive = KEYFRAME_INTERVAL_S
     # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
     # rock that far is behind a rover that does not come back
@@ -71,8 +74,9 @@ class LongTraverseConfig:
     # 10 Hz over a 0.12 m/s traverse is ~35 kB per metre for each of the runner's online record
     # and the EKF's pose history: with the ground truth held twice, 0.9 GB over 10 km, the whole
     # growth of `fgslam run`'s memory with distance. The rover moves ~0.1 m a second, its error
-    # changes over metres, and iSAM2 keeps one keyframe a second (KeyframeConfig.interval_s):
-    # one pose a second is the resolution of the estimates. The truth stays at its own rate
+    # changes over metres, and iSAM2 keeps one keyframe every isam2_keyframe_interval_s (1 s; its
+    # smoothed trajectory has a pose there, the online estimate one a second): one pose a second
+    # is the resolution of the estimates. The truth stays at its own rate
     # (held once, fgslam.runner.run_backend's keep_truth), so that evo, which pairs stamps
     # without interpolating, evaluates every pose of ground_truth.tum's run as fgslam does.
     record_rate_hz: Positive = 1.0  # the runner's online estimate at most this often (RunnerConfig.record_rate_hz)
@@ -132,10 +136,13 @@ def check_window(cfg: LongTraverseConfig, worst_latency_s: float, margin_s: floa
             f"latency {worst_latency_s:g} s plus the window margin {margin_s:g} s: fixes would be lost to the window")
 
 
-def _long_settings(name: str, cfg: LongTraverseConfig) -> dict:
+def _long_settings(name: str, cfg: LongTraverseConfig, overrides: dict | None = None) -> dict:
     """What back-end ``name`` gets on a long traverse (empty for one that gets nothing), as a
-    nested mapping of the back-end's config."""
+    nested mapping of the back-end's config; iSAM2's frame and persistence intervals follow the
+    keyframe interval of ``overrides`` where they set one."""
     kf = cfg.isam2_keyframe_interval_s
+    if has_setting(overrides, ("keyframes", "interval_s")):
+        kf = float(overrides["keyframes"]["interval_s"])
     return {"isam2": {"fixed_lag_s": cfg.isam2_fixed_lag_s, "calibration_mode": cfg.isam2_calibration_mode,
                       "keyframes": {"interval_s": kf},
                       "landmarks": {"min_frame_interval_s": FRAMES_PER_KEYFRAME * kf,
@@ -184,12 +191,12 @@ def per_world_keys(name: str) -> frozenset[tuple[str, ...]]:
 def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
                           cfg: LongTraverseConfig) -> dict | None:
     """The overrides back-end ``name`` runs with on a stream of ``duration_s``: on a long
-    traverse iSAM2 gets ``fixed_lag_s``, ``calibration_mode`` and its keyframe and rock-frame
-    intervals (:class:`LongTraverseConfig`) and the EKF ``forget_distance_m``,
+    traverse iSAM2 gets ``fixed_lag_s``, ``calibration_mode``, its keyframe interval and the rock
+    frame and persistence intervals that follow it (:class:`LongTraverseConfig`) and the EKF ``forget_distance_m``,
     ``trajectory_period_s`` and ``keep_seen_s``, each unless the overrides set it (setting by
     setting: an override of ``landmarks.association_cov_scale`` leaves the frame interval to the
     rule); otherwise unchanged."""
-    defaults = _long_settings(name, cfg)
+    defaults = _long_settings(name, cfg, overrides)
     if not defaults or not is_long(duration_s, cfg):
         return overrides
     add = [(path, v) for path, v in _leaves(defaults) if not has_setting(overrides, path)]

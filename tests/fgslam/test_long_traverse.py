@@ -31,9 +31,11 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     assert backend_overrides_for("isam2", explicit, 3600.0, cfg) is explicit
     # setting by setting: a section set for another reason still gets the rule's other settings
     scaled = {"landmarks": {"association_cov_scale": 1.5}, "keyframes": {"interval_s": 3.0}}
+    # ... and the frame and persistence intervals follow the keyframe interval it sets
     assert backend_overrides_for("isam2", scaled, 3600.0, cfg) == {
         "fixed_lag_s": 90.0, "calibration_mode": "estimate", "keyframes": {"interval_s": 3.0},
-        "landmarks": {"association_cov_scale": 1.5, "min_frame_interval_s": 1.9, "association": {"persistence_s": 5.0}}}
+        "landmarks": {"association_cov_scale": 1.5, "min_frame_interval_s": pytest.approx(2.85),
+                      "association": {"persistence_s": 7.5}}}
     consider = LongTraverseConfig(isam2_calibration_mode="consider")
     assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
     assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
@@ -48,16 +50,18 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
 def test_the_long_traverse_keyframe_settings_reach_the_smoother():
     from fgslam.backends.registry import backend_config
 
+    two = LongTraverseConfig(isam2_keyframe_interval_s=2.0)
     smoother = backend_config("isam2", backend_overrides_for("isam2", {"landmarks": {"association_cov_scale": 1.5}},
-                                                              3600.0, LongTraverseConfig()))
+                                                              3600.0, two))
     assert smoother.keyframes.interval_s == 2.0
     assert smoother.landmarks.min_frame_interval_s == pytest.approx(1.9)
     assert smoother.landmarks.association.persistence_s == pytest.approx(5.0)
     assert smoother.landmarks.association.persistence_n_uncertain == 2  # the smoother's own, kept
     assert smoother.landmarks.association_cov_scale == 1.5
-    yard = backend_config("isam2", backend_overrides_for("isam2", None, 600.0, LongTraverseConfig()))
-    assert (yard.keyframes.interval_s, yard.landmarks.min_frame_interval_s) == (1.0, 0.95)
-    assert yard.landmarks.association.persistence_s == 2.5
+    for span in (600.0, 3600.0):  # a yard, and a long traverse at the default: the smoother's own
+        default = backend_config("isam2", backend_overrides_for("isam2", None, span, LongTraverseConfig()))
+        assert (default.keyframes.interval_s, default.landmarks.min_frame_interval_s) == (1.0, pytest.approx(0.95))
+        assert default.landmarks.association.persistence_s == 2.5
 
 
 def test_a_window_shorter_than_the_fix_latency_is_refused():
