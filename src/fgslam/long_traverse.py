@@ -17,7 +17,6 @@ An explicit setting in the back-end's overrides always wins (``fixed_lag_s: 0`` 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from dataclasses import dataclass
 from typing import Literal
@@ -25,7 +24,7 @@ from typing import Literal
 from fgslam.errors import FgslamError
 from fgslam.runner import RunnerConfig
 from reloc.backend import Trajectory
-from reloc.config import NonNegative, Positive, checked
+from reloc.config import NonNegative, Positive, checked, merged_overrides
 
 KEYFRAME_INTERVAL_S = 1.0  # LongTraverseConfig.isam2_keyframe_interval_s (KeyframeConfig's default)
 FRAMES_PER_KEYFRAME = 0.95  # a rock frame per keyframe: min_frame_interval_s this times the interval
@@ -199,13 +198,5 @@ def backend_overrides_for(name: str, overrides: dict | None, duration_s: float,
     defaults = _long_settings(name, cfg, overrides)
     if not defaults or not is_long(duration_s, cfg):
         return overrides
-    add = [(path, v) for path, v in _leaves(defaults) if not has_setting(overrides, path)]
-    if not add:
-        return overrides
-    out = copy.deepcopy(overrides or {})
-    for path, v in add:
-        node = out
-        for k in path[:-1]:
-            node = node.setdefault(k, {})
-        node[path[-1]] = v
-    return out
+    out = merged_overrides(defaults, overrides or {})
+    return overrides if out == (overrides or {}) else out

@@ -17,6 +17,7 @@ Two checks share one declaration, the field's annotation: its type (``float``, `
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import json
@@ -166,6 +167,19 @@ def _adapter(cls: type):
     if "__pydantic_config__" not in cls.__dict__:
         cls.__pydantic_config__ = ConfigDict(strict=True, allow_inf_nan=False, extra="forbid")
     return TypeAdapter(cls)
+
+
+def merged_overrides(base: dict, over: dict) -> dict:
+    """``over`` laid on ``base``, mappings merged key by key at every depth (an override of one
+    setting of a section keeps the section's others); neither argument is changed. For override
+    mappings before they become a config (:func:`config_from_dict` merges into a config's view)."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merged_overrides(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
 
 
 def _merge(cls: type, base: dict, data: dict) -> dict:

@@ -174,19 +174,6 @@ def nest(overrides: dict) -> dict:
     return out
 
 
-def merged(base: dict, over: dict) -> dict:
-    """``over`` laid on ``base``, mappings merged key by key at every depth (a task's
-    ``backend_overrides.isam2.fixed_lag_s`` adds to a kilometre run's ``backend.yaml`` instead of
-    replacing its calibration); neither argument is changed."""
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merged(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
 def build_configs(overrides: dict, world: str | None = None, seed: int = 0, compare_base: dict | None = None):
     """(SimConfig, CompareConfig) from canonical dotted overrides. On a kilometre preset ``world``
     the simulator overrides apply to that preset's config for ``seed`` (as ``fgslam sim`` does);
@@ -194,14 +181,17 @@ def build_configs(overrides: dict, world: str | None = None, seed: int = 0, comp
     sensors) lies under the comparison overrides. World and seed are otherwise left at their
     defaults (the task sets them)."""
     from fgslam.compare import CompareConfig
-    from reloc.config import config_from_dict
+    from reloc.config import config_from_dict, merged_overrides
     from sim.config import SimConfig
     from sim.tiled.presets import is_tiled, preset_config
 
     tree = nest(overrides)
     base = preset_config(world, seed) if world is not None and is_tiled(world) else None
     sim_cfg = config_from_dict(SimConfig, tree.get("sim"), base=base, where="sim.")
-    cmp_cfg = config_from_dict(CompareConfig, merged(compare_base or {}, tree.get("compare") or {}), where="compare.")
+    # a task's backend_overrides.isam2.fixed_lag_s adds to a kilometre run's backend.yaml instead of
+    # replacing its calibration
+    cmp_tree = merged_overrides(compare_base or {}, tree.get("compare") or {})
+    cmp_cfg = config_from_dict(CompareConfig, cmp_tree, where="compare.")
     return sim_cfg, dataclasses.replace(cmp_cfg, workers=1)
 
 
