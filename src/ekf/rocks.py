@@ -30,7 +30,7 @@ from reloc.landmark_model import (
     point_to_world,
 )
 from reloc.measurements import RockObservations
-from reloc.persistence import persistence_agree, persistence_slack
+from reloc.persistence import persistence_agree, persistence_slack, place_agrees
 
 
 def stacked_jacobian(H_head: np.ndarray, H_l: np.ndarray) -> np.ndarray:
@@ -177,8 +177,11 @@ class RockUpdate:
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[det], Rz[det])
             seen_ids = s.book.ids[cand[ci]]
             seen_det = det
-            ok = s.recent.test(seen_ids, obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2,
-                               persistence_slack(a_cfg, z[det]), persistence_agree(a_cfg, S_hat[ci], Rz[det]))
+            slack, need = persistence_slack(a_cfg, z[det]), persistence_agree(a_cfg, S_hat[ci], Rz[det])
+            ok = s.recent.test(seen_ids, obs.t, xw, cw, a_cfg.persistence_s, a_cfg.gate_chi2, slack, need)
+            if a_cfg.persistence_any_detection:
+                ok = place_agrees(ok, need, seen_ids, obs.t, xw, cw, s.recent, s.frames_for(self.code),
+                                  a_cfg.persistence_s, a_cfg.gate_chi2, slack)
             n_not_persistent = int(det.size - ok.sum())
             det, ci = det[ok], ci[ok]
         n_lone = 0
@@ -203,6 +206,9 @@ class RockUpdate:
         if seen_det.size:  # every associated detection, placed with the updated pose
             xw, cw = point_to_world(s.R_world_base, s.p_world, z[seen_det], Rz[seen_det])
             s.recent.record(seen_ids, obs.t, xw, cw)
+        if n_det and a_cfg.persistence_s > 0 and a_cfg.persistence_any_detection:  # every detection, by place
+            s.frames_for(self.code).record(obs.t, *point_to_world(s.R_world_base, s.p_world, z, Rz),
+                                           a_cfg.persistence_s)
 
         # a new landmark only from a second sighting at the same place (first sightings wait)
         new = np.flatnonzero(assoc.is_new)

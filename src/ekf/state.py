@@ -23,7 +23,7 @@ import numpy as np
 
 from reloc.geometry import exp_so3, project_so3
 from reloc.landmark_book import LandmarkBook
-from reloc.persistence import PendingDetections, RecentDetections
+from reloc.persistence import PendingDetections, RecentDetections, RecentFrames
 
 POSE_DIM = 6
 CALIB_DIM = 4  # rotation error (3) and range scale (1) of the stereo measurements
@@ -88,6 +88,7 @@ class FilterState:
     l_lin: np.ndarray | None = None  # (n, 3)
     recent: RecentDetections = field(default_factory=RecentDetections)  # landmarks' recent detections (persistence)
     pending: dict = field(default_factory=dict)  # kind code -> PendingDetections: first sightings (persistence)
+    frames: dict = field(default_factory=dict)  # kind code -> RecentFrames: every recent detection (place rule)
 
     @property
     def calibrated(self) -> bool:
@@ -153,6 +154,7 @@ class FilterState:
             l_lin=None if self.l_lin is None else self.l_lin.copy(),
             recent=self.recent.copy(),
             pending={code: p.copy() for code, p in self.pending.items()},
+            frames={code: f.copy() for code, f in self.frames.items()},
         )
 
     def inject(self, dx: np.ndarray) -> None:
@@ -304,6 +306,10 @@ class FilterState:
     def pending_for(self, code: int) -> PendingDetections:
         """The first sightings of kind ``code`` (created on first use)."""
         return self.pending.setdefault(code, PendingDetections())
+
+    def frames_for(self, code: int) -> RecentFrames:
+        """Every recent detection of kind ``code`` by place (created on first use)."""
+        return self.frames.setdefault(code, RecentFrames())
 
     def keep_landmarks(self, keep: np.ndarray) -> None:
         """Marginalise out the landmarks where ``keep`` (n,) is False (drop their rows/columns)."""

@@ -251,3 +251,26 @@ class RecentFrames(_Points):
         d2 = pairwise_d2(xyz, cov + slack[:, None, None] * np.eye(3), self.xyz[live], self.cov[live], gate_chi2)
         frames = self.t[live]
         return np.array([np.unique(frames[d2[i] <= gate_chi2]).size for i in range(k)], dtype=int)
+
+
+def place_agrees(ok: np.ndarray, need: np.ndarray, ids, t: float, xyz_world: np.ndarray,
+                 cov_world: np.ndarray, recent: RecentDetections, frames: RecentFrames, window_s: float,
+                 gate_chi2: float, slack_var) -> np.ndarray:
+    """``ok`` (k,) of :meth:`RecentDetections.test` with the place rule
+    (``AssociationConfig.persistence_any_detection``, :class:`RecentFrames`): a pair refused there
+    that needed more than one agreeing detection (``need`` (k,)), of a landmark (``ids`` (k,)) with
+    no detection at all in the window, passes when as many earlier frames held a detection at its
+    world position (``xyz_world`` (k, 3), ``cov_world`` (k, 3, 3), ``slack_var`` (k,)). One rule
+    for both back-ends; returns a new array."""
+    ok = np.array(ok, dtype=bool)
+    need = np.broadcast_to(np.asarray(need, dtype=int), ok.shape)
+    retry = np.flatnonzero(~ok & (need > 1))
+    if retry.size:
+        ids = np.asarray(ids, dtype=int).reshape(-1)
+        retry = retry[~recent.seen(ids[retry], t, window_s)]
+    if retry.size:
+        xyz = np.reshape(np.asarray(xyz_world, dtype=float), (-1, 3))[retry]
+        cov = np.reshape(np.asarray(cov_world, dtype=float), (-1, 3, 3))[retry]
+        slack = np.broadcast_to(np.asarray(slack_var, dtype=float), ok.shape)[retry]
+        ok[retry] = frames.count(t, xyz, cov, window_s, gate_chi2, slack) >= need[retry]
+    return ok

@@ -8,7 +8,7 @@ import pytest
 from scipy.stats import chi2
 
 from reloc.association import AssociationConfig
-from reloc.persistence import RecentDetections, RecentFrames
+from reloc.persistence import RecentDetections, RecentFrames, place_agrees
 
 GATE = AssociationConfig().gate_chi2
 R = np.diag([0.03, 0.02, 0.02]) ** 2  # a rock 6-8 m away: stereo covariance, world frame
@@ -174,6 +174,30 @@ def test_recent_frames_count_earlier_frames_with_a_detection_at_the_place_whatev
     rf.record(21.0, x[None], R[None], 2.5)
     assert len(snap) == 1 and len(rf) == 2
     assert count(22.0, np.zeros((0, 3))).shape == (0,)
+
+
+def test_place_agrees_retries_only_uncertain_pairs_of_landmarks_not_detected_lately():
+    """place_agrees: a refused pair passes by place only where it needed more than one agreeing
+    detection, its landmark had no detection in the window, and as many earlier frames held a
+    detection at its position; passed pairs stay passed; the input is not changed."""
+    x = np.array([5.0, 1.0, 0.2])
+    frames = RecentFrames()
+    for t in (10.0, 11.0):  # two frames with something at x
+        frames.record(t, x[None], R[None], 2.5)
+    recent = RecentDetections()
+    recent.record(np.array([7]), 10.5, x[None] + 3.0, R[None])  # landmark 7 detected lately (elsewhere)
+    ok = np.array([False, False, False, False, True])
+    need = np.array([2, 1, 2, 3, 2])
+    ids = np.array([1, 2, 7, 3, 4])
+    xyz, cov = np.tile(x, (5, 1)), np.tile(R, (5, 1, 1))
+    got = place_agrees(ok, need, ids, 12.0, xyz, cov, recent, frames, 2.5, GATE, np.zeros(5))
+    # 1: uncertain, not seen lately, two frames at its place -> passes; 2: needed one (certain) and
+    # was refused by its own record -> stays refused; 7: seen lately -> its record rules; 3: needs
+    # three frames, two held one -> refused; 4: passed already
+    assert got.tolist() == [True, False, False, False, True]
+    assert ok.tolist() == [False, False, False, False, True]
+    far = place_agrees(ok, need, ids, 12.0, xyz + 1.0, cov, recent, frames, 2.5, GATE, np.zeros(5))
+    assert far.tolist() == ok.tolist()  # nothing at that place
 
 
 def test_clutter_seldom_agrees_with_two_earlier_frames_by_place():

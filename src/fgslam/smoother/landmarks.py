@@ -22,7 +22,7 @@ from reloc.budget import innovation_trace, select_observations
 from reloc.covariance import psd_part
 from reloc.geometry import skew
 from reloc.landmark_model import point_in_base, point_to_world
-from reloc.persistence import RecentDetections, RecentFrames, persistence_agree, persistence_slack
+from reloc.persistence import RecentDetections, RecentFrames, persistence_agree, persistence_slack, place_agrees
 
 CANDIDATE, ACTIVE, RETIRED = 0, 1, 2
 _VIEW_SLACK_M = 1.0  # motion allowed from the view cache's centre (keyframes are <= 0.5 m apart)
@@ -226,12 +226,9 @@ class LandmarkStore:
             need = persistence_agree(ac, S_hat[a.landmark_of[matched]], R_z[matched])
             ok = self.recent.confirm(ids, t, l_new[matched], c_new[matched], ac.persistence_s, ac.gate_chi2,
                                      slack, need)
-            retry = np.flatnonzero(~ok & (need > 1)) if ac.persistence_any_detection else np.zeros(0, dtype=int)
-            # ... of landmarks with no detection in the window before this frame (seen() looks before t)
-            retry = retry[~self.recent.seen([ids[i] for i in retry], t, ac.persistence_s)] if retry.size else retry
-            if retry.size:  # uncertain pairs of landmarks not detected lately: a detection at that place
-                ok[retry] = self.frames.count(t, l_new[matched][retry], c_new[matched][retry], ac.persistence_s,
-                                              ac.gate_chi2, slack[retry]) >= need[retry]
+            if ac.persistence_any_detection:  # seen() looks strictly before t: this frame's record is not counted
+                ok = place_agrees(ok, need, ids, t, l_new[matched], c_new[matched], self.recent, self.frames,
+                                  ac.persistence_s, ac.gate_chi2, slack)
             n_not_persistent = int(matched.size - ok.sum())
             self.n_not_persistent += n_not_persistent
             matched = matched[ok]
