@@ -183,6 +183,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
             # every frame's update, CPU time of its thread: the cost without the machine's other load
             "frame_cpu_latency": res.extra.get("frame_cpu_latency", {}),
             "frame_cpu_p99_ms": res.extra.get("frame_cpu_latency", {}).get("p99_ms"),
+            "heap_trim": res.extra.get("heap_trim", {}),  # free memory handed back to the OS (RunnerConfig)
         },
         "memory": res.extra.get("memory", []),
         "slip": res.extra.get("slip", {}),  # the wheel-slip monitor's checks and spells (reloc.slip)

@@ -19,6 +19,9 @@ over a bag being read). The run records the online estimate (with covariance), t
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
+import functools
 import gc
 import logging
 import threading
@@ -37,7 +40,7 @@ from fgslam.front_end import MOTION_INPUTS, FrontEnd, SharedSteps
 from fgslam.relocalizer import FixAttempt
 from fgslam.timing import TimedBackend
 from reloc.backend import Backend, BackendStats, FixOutcome, LandmarkMap, PoseEstimate, Trajectory
-from reloc.config import NonNegativeInt, Positive, checked
+from reloc.config import NonNegative, NonNegativeInt, Positive, checked
 from reloc.gyro import GyroConfig
 from reloc.kinds import UnknownKindError, kind_of
 from reloc.measurements import GlobalFix, GroundTruthPose
@@ -76,6 +79,12 @@ class RunnerConfig:
     # on the demo's 430 000 objects (first 700 s, iSAM2), now ~23 000
     freeze_heap: bool = True
     rss_every_m: Positive = 500.0  # resident memory sampled every this many metres of estimated path
+    # the allocator's free memory handed back to the OS every this many seconds of stream time
+    # (glibc's malloc_trim; 0: never; nothing where the C library has none). GTSAM and numpy free
+    # and allocate blocks of every size at every update, and glibc keeps what they free: over
+    # plains-2km (iSAM2 + reloc) the resident memory grew 496 -> 625 MB from 0.25 to 2 km while
+    # what a trim left was flat at 450-466 MB from 0.75 km on (docs/app.md, "memory on long traverses")
+    trim_heap_every_s: NonNegative = 120.0
     # wheel slip seen by the landmarks corrects the odometry of both back-ends (reloc.slip): the
     # fault table's 60 s stuck rover (docs/sim.md)
     slip: SlipConfig = field(default_factory=SlipConfig)
@@ -211,6 +220,51 @@ class RunRecorder:
         return truth_from_rows(self.truth)
 
 
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim`` (None where the C library has none: musl, macOS, Windows)."""
+    name = ctypes.util.find_library("c")
+    try:
+        fn = getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
+    except OSError:
+        return None
+    if fn is not None:
+        fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+    return fn
+
+
+def release_free_heap() -> bool:
+    """Hand the allocator's free memory back to the OS (``malloc_trim(0)``); whether any was."""
+    fn = _malloc_trim()
+    return bool(fn(0)) if fn is not None else False
+
+
+class HeapTrim:
+    """:func:`release_free_heap` every ``every_s`` of stream time (0: never); counts the trims
+    and their CPU time."""
+
+    def __init__(self, every_s: float) -> None:
+        self.every_s = every_s
+        self.next_t: float | None = None
+        self.n = 0
+        self.cpu_s = 0.0
+
+    def tick(self, t: float) -> None:
+        if self.every_s <= 0:
+            return
+        if self.next_t is None:
+            self.next_t = t + self.every_s
+        elif t >= self.next_t:
+            self.next_t = t + self.every_s
+            c0 = time.process_time()
+            release_free_heap()
+            self.cpu_s += time.process_time() - c0
+            self.n += 1
+
+    def stats(self) -> dict:
+        return {"n": self.n, "cpu_s": round(self.cpu_s, 3)}
+
+
 def resident_memory_mb() -> dict:
     """The process's resident memory now and at its peak (MB; Linux /proc, else the peak only)."""
     import resource
@@ -295,6 +349,7 @@ def shared_steps(measurements: list, config: RunnerConfig | None = None) -> Shar
 def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: RunnerConfig, front, on_progress,
          observer: RunObserver | None = None, keep_truth: bool = True) -> RunResult:
     rec = RunRecorder(cfg.record_rate_hz, on_progress, cfg.rss_every_m, observer, keep_truth)
+    heap = HeapTrim(cfg.trim_heap_every_s)
     outcomes: list[FixOutcome] = []
     kinds: dict[str, None] = {}  # the landmark kinds observed, in order of appearance
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -312,6 +367,7 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
                 rec.predicted(t, be)
                 fixes.after_predict(t, be)
                 rec.progress(t)
+                heap.tick(t)
         elif isinstance(m, GroundTruthPose):
             rec.saw_truth(m)
         else:  # observe
@@ -336,5 +392,5 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         wall_s=wall, backend_s=be.busy_s, match_s=fixes.match_s, t_start=float(rec.t_first),
         t_end=float(rec.t_last), cpu_s=cpu, backend_cpu_s=be.busy_cpu_s,
         extra={"frame_latency": be.frame_latency.to_dict(), "frame_cpu_latency": be.frame_cpu_latency.to_dict(),
-               "memory": rec.memory, **front.stats()},
+               "memory": rec.memory, "heap_trim": heap.stats(), **front.stats()},
     )

@@ -573,3 +573,33 @@ def test_the_run_keeps_its_starting_objects_out_of_the_collectors_passes(stream)
         assert gc.get_freeze_count() > 0.99 * mine > 0  # (less what died by reference count)
     finally:
         gc.unfreeze()
+
+
+def test_the_run_hands_the_free_heap_back_on_its_schedule(stream):
+    """RunnerConfig.trim_heap_every_s: a trim every so many seconds of stream, none with 0, and
+    the estimate the same either way."""
+    from fgslam.runner import RunnerConfig
+
+    on = run_backend(DeadReckoning(stream.initial), stream.measurements, config=RunnerConfig(trim_heap_every_s=10.0))
+    off = run_backend(DeadReckoning(stream.initial), stream.measurements, config=RunnerConfig(trim_heap_every_s=0.0))
+    span = on.t_end - on.t_start
+    assert int(span // 10.0) - 1 <= on.extra["heap_trim"]["n"] <= int(span // 10.0)
+    assert off.extra["heap_trim"] == {"n": 0, "cpu_s": 0.0}
+    np.testing.assert_array_equal(on.final.T_world_base, off.final.T_world_base)
+
+
+def test_release_free_heap_returns_freed_blocks_in_the_middle_of_the_heap():
+    """Blocks freed between live ones stay resident under glibc until trimmed; the trim gives
+    them back (where the C library has malloc_trim)."""
+    from fgslam.runner import _malloc_trim, release_free_heap, resident_memory_mb
+
+    if _malloc_trim() is None:
+        pytest.skip("no malloc_trim in this C library")
+    blocks = [np.ones(100_000 // 8) for _ in range(1500)]  # 150 MB of heap blocks (below mmap's threshold)
+    keep = blocks[::50]  # one live block in fifty: the heap's top is never free
+    del blocks
+    before = resident_memory_mb()["rss_mb"]
+    assert release_free_heap()
+    after = resident_memory_mb()["rss_mb"]
+    assert before - after > 50.0, (before, after)
+    assert all(b[0] == 1.0 for b in keep)
