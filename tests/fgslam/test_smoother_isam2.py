@@ -636,3 +636,40 @@ def test_fixed_lag_translation_threshold_spares_batch_steps_and_keeps_the_estima
     assert out[0.1][0] < 0.8 * out[0.0][0]
     assert out[0.1][1] == out[0.0][1] == len(fixes)
     assert out[0.1][2] < 0.1
+
+
+def test_fixed_lag_compaction_bounds_the_factor_slots_and_keeps_the_estimate_and_the_fixes(short_run):
+    """compact_after_slots: GTSAM keeps a slot for every factor ever added; the fixed-lag solver
+    is rebuilt from its live factors when they pile up, so the slots stay bounded, the estimate
+    is that of the solver never compacted, and an accepted fix's record follows its factor."""
+    fixes = [_fix_at(short_run, 20.0, 22.0), _fix_at(short_run, 54.0, 56.0, offset_xy=(0.05, -0.05))]
+    runs, slots = {}, {}
+    for every in (0, 100):
+        sm = Isam2Smoother(short_run.initial_pose, SmootherConfig(fixed_lag_s=12.0, compact_after_slots=every))
+        seen = []
+        update = sm.solver.update
+
+        def spy(*a, _sm=sm, _update=update, _seen=seen, **k):
+            out = _update(*a, **k)
+            _seen.append(_sm.solver.factors().size())
+            return out
+
+        sm.solver.update = spy
+        out = drive(sm, short_run.measurements, fixes)
+        assert all(o.accepted for o in out.outcomes)
+        runs[every], slots[every] = sm, np.array(seen)
+    lazy, compact = runs[0], runs[100]
+    assert lazy.solver.n_compactions == 0 and compact.solver.n_compactions >= 2
+    assert compact.stats().extra["n_compactions"] == compact.solver.n_compactions
+    assert slots[0][-1] > 300  # without it the slots only grow
+    live = compact.solver.factors().nrFactors()
+    assert slots[100].max() <= max(100, 2 * live) + 50  # one update's worth above the bound
+    for rec in compact.fixes:  # the fix records point at their factors in the rebuilt solver
+        if compact.solver.alive(rec.key):
+            assert list(compact.solver.factors().at(rec.factor_index).keys()) == [rec.key]
+        else:  # marginalized with its keyframe: no index that now belongs to another factor
+            assert rec.factor_index == -1
+    assert any(compact.solver.alive(r.key) for r in compact.fixes)
+    a, b = lazy.trajectory(), compact.trajectory()
+    assert np.abs(a.positions_m - b.positions_m).max() < 0.01
+    assert ate_m(short_run, b.t, b.T_world_base) < 0.3

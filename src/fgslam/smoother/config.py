@@ -190,6 +190,12 @@ class SmootherConfig:
     # about half the window at each update (docs/smoother.md, "Fixed-lag cost"). 0: every keyframe;
     # full mode: unused
     marginalize_every_s: NonNegative = 5.0
+    # fixed-lag: GTSAM keeps a slot for every factor ever added (removed and marginalized ones
+    # stay as null pointers in its nonlinear and linear graphs): ~26 a keyframe update, 531 000
+    # slots for ~4 000 live factors at the end of plains-2km (2 km), growing with the distance.
+    # When the slots reach this many (and 2 x the live factors), the solver is rebuilt from its
+    # live factors and linearization point (a batch step, as iSAM2 takes on its own); 0: never
+    compact_after_slots: NonNegativeInt = 50_000
     frozen_marginals: bool = False  # fixed-lag: marginal covariance of a keyframe as it leaves the
     # window (~1 ms each) instead of its causal covariance (an upper bound)
     # fixed-lag: the newest keyframe's covariance after an update that marginalized keys is its

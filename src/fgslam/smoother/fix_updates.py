@@ -108,8 +108,10 @@ class LateFixes:
             log.info("fix at t=%.2f %s", rec.fix.t_meas, rec.retracted_reason)
 
     def _remap_fix_factors(self, index_map: dict[int, int]) -> None:
-        """The solver was rebuilt: its factors have new indices (``Solver.on_rebuild``)."""
+        """The solver was rebuilt: its factors have new indices (``Solver.on_rebuild``); a fix
+        whose factor is gone (marginalized with its keyframe) gets -1, not an index that now
+        belongs to another factor."""
         for r in self.fixes:
             if r.active:
-                r.factor_index = index_map.get(r.factor_index, r.factor_index)
+                r.factor_index = index_map.get(r.factor_index, -1)
 

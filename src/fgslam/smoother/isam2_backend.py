@@ -291,6 +291,7 @@ class Isam2Smoother(LateFixes, Backend):
                 "n_qr_retries": self.solver.n_qr_retries,
                 "factorization": self.solver.factorization.value,
                 "n_cholesky_returns": self.solver.n_cholesky_returns,
+                "n_compactions": self.solver.n_compactions,
                 **kind_counts,
                 "retracted_fixes": retracted,
                 "fix_reject_reasons": dict(self.fix_reject_reasons),

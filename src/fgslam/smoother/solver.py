@@ -91,6 +91,8 @@ class Solver:
         self.n_qr_retries = 0  # batches that failed in Cholesky and went in with QR
         self.n_updates = 0
         self.n_cholesky_returns = 0
+        self.n_compactions = 0  # rebuilds that dropped the removed factors' slots (compact_after_slots)
+        self._compact_at = cfg.compact_after_slots  # slots at which the next compaction is due
         self._qr_until: int | None = None  # after a Cholesky failure: QR until this many updates
         self._qr_spell = cfg.cholesky_retry_updates
         # told old -> new factor indices whenever the solver is rebuilt (fix records hold indices)
@@ -230,7 +232,28 @@ class Solver:
         self._alive |= set(values.keys())
         if self.fixed_lag:
             self._alive = set(self.ifls.timestamps().keys())
+            if values.size() > 0:
+                self._maybe_compact()
         return idx
+
+    def _maybe_compact(self) -> None:
+        """Rebuild the fixed-lag solver from its live factors once its slots (live, removed and
+        marginalized factors: GTSAM never reuses one) reach ``compact_after_slots`` and 2 x the
+        live factors; a rebuild that fails leaves the solver as it was until as many slots again."""
+        every = self.cfg.compact_after_slots
+        g = self.factors()
+        if every <= 0 or g.size() < max(self._compact_at, 2 * g.nrFactors()):
+            return
+        try:
+            n = self._rebuild(g.size(), set())
+        except (RuntimeError, ValueError) as exc:
+            first = next((ln for ln in str(exc).splitlines() if ln.strip()), str(exc))
+            log.warning("compacting the smoother's %d factor slots failed (%s); kept as it was", g.size(), first)
+            self._compact_at = g.size() + every
+            return
+        self.n_compactions += 1
+        self._compact_at = every
+        log.debug("smoother compacted: %d factor slots -> %d", g.size(), n)
 
     def _apply(self, graph, values, timestamps, remove, last_keys) -> list[int]:
         """One update of the current solver; the indices of the new factors."""
