@@ -156,7 +156,7 @@ def fixes_of(attempts: list[FixAttempt]):
     return [a.fix for a in attempts if a.fix is not None]
 
 
-HEALTH_KEYS = ("n_failed_updates", "n_recoveries", "n_qr_retries", "factorization", "n_cholesky_returns")
+HEALTH_KEYS = ("n_failed_updates", "n_recoveries", "n_qr_retries", "factorization", "n_cholesky_returns", "n_compactions")
 
 
 def attempts_by_status(attempts: list[FixAttempt]) -> dict[str, dict[str, int]]:
