@@ -82,8 +82,8 @@ class RunnerConfig:
     # the allocator's free memory handed back to the OS every this many seconds of stream time
     # (glibc's malloc_trim; 0: never; nothing where the C library has none). GTSAM and numpy free
     # and allocate blocks of every size at every update, and glibc keeps what they free: over
-    # plains-2km (iSAM2 + reloc) the resident memory grew 496 -> 625 MB from 0.25 to 2 km while
-    # what a trim left was flat at 450-466 MB from 0.75 km on (docs/app.md, "memory on long traverses")
+    # plains-2km (iSAM2 + reloc) the resident memory grew 496 -> 598 MB from 0.25 to 1.75 km while
+    # what a trim left stayed at 398-466 MB up to ~1.5 km (docs/app.md, "whole traverses and their memory")
     trim_heap_every_s: NonNegative = 120.0
     # wheel slip seen by the landmarks corrects the odometry of both back-ends (reloc.slip): the
     # fault table's 60 s stuck rover (docs/sim.md)
