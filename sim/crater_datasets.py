@@ -9,6 +9,12 @@ craters: a detection on them is neither a true nor a false positive (COCO's "cro
 ``train``, ``val`` (choice of the score threshold) and ``eval`` (the benchmark) draw from
 disjoint seed streams, so evaluation worlds are never seen in training.
 
+A crater's photometric signal-to-clutter ratio (:func:`signal_to_clutter`, ``CraterSample.scr``
+on request): the rms of what the crater adds to the camera image, against the rms of the image
+of the same ground without craters, both band-passed at the crater's scale. The labels above
+are topographic (a bowl deeper than the relief); albedo texture, haze and noise can still hide
+a crater that the relief does not, and the ratio measures that.
+
 The camera (:func:`orbital_sensor`): atmospheric haze, optical blur, exposure, shot and read
 noise, column striping and CCD-channel gain seams (HiRISE-like), quantisation to 8 bit or to
 10-16 bit in a 16-bit container, and JPEG compression of some 8-bit products.
@@ -16,6 +22,7 @@ noise, column striping and CCD-channel gain seams (HiRISE-like), quantisation to
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -132,6 +139,7 @@ class CraterSample:
     image: np.ndarray
     labels: CraterLabels
     scene: CraterScene
+    scr: np.ndarray | None = None  # (K,) per label: photometric signal-to-clutter (NaN under 4 px; on request)
 
 
 def scene_rng(seed: int, split: str, k: int) -> np.random.Generator:
@@ -145,12 +153,65 @@ def crater_scenes(n: int, seed: int, split: str = "train", var: SceneVariation =
         yield render_crater_scene(var, scene_rng(seed, split, k))
 
 
-def crater_samples(n: int, seed: int, split: str = "eval", cfg: CraterSetConfig = CraterSetConfig()) -> Iterator[CraterSample]:
-    """``n`` labelled camera images of seeded scenes of ``split``."""
+def crater_samples(n: int, seed: int, split: str = "eval", cfg: CraterSetConfig = CraterSetConfig(),
+                   scr: bool = False) -> Iterator[CraterSample]:
+    """``n`` labelled camera images of seeded scenes of ``split``; ``scr``: with each label's
+    photometric signal-to-clutter ratio (the same images and labels; twice the shading and
+    camera work)."""
     for k in range(n):
         rng = scene_rng(seed, split, k)
-        scene = render_crater_scene(cfg.scene, rng)
+        scene = render_crater_scene(cfg.scene, rng, without_craters=scr)
+        camera = copy.deepcopy(rng)  # the same camera (draws and noise) for the ground without craters
         image = orbital_sensor(scene.grey, rng, cfg.sensor)
         labels = crater_labels(scene.centres_px, scene.diameters_px, scene.visible, image.shape,
                                cfg.min_label_px, cfg.min_listed_px)
-        yield CraterSample(image, labels, scene)
+        ratio = None
+        if scr:
+            ground = orbital_sensor(scene.grey_without_craters, camera, cfg.sensor)
+            ratio = signal_to_clutter(image, ground, labels.centres_px, labels.diameters_px)
+        yield CraterSample(image, labels, scene, ratio)
+
+
+SCR_DISC = 0.6  # signal: over the disc of this x the diameter (the bowl, the rim and its shadow)
+SCR_WINDOW = 3.0  # clutter: over the square of this x the diameter a side
+
+
+def signal_to_clutter(image: np.ndarray, ground: np.ndarray, centres_px: np.ndarray, diameters_px: np.ndarray,
+                      min_px: float = 4.0) -> np.ndarray:
+    """Per crater (K,): the rms of ``image - ground`` over the crater's disc (radius
+    ``SCR_DISC`` D), over the std of ``ground`` in the square of side ``SCR_WINDOW`` D around it,
+    both band-passed at the crater's scale (difference of Gaussians of sigma D / 16 and D / 2,
+    D rounded to half octaves). ``image``: the camera image of a scene; ``ground``: the same
+    camera on the same ground without craters. NaN for craters under ``min_px`` or without
+    pixels in the image."""
+    scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    a = np.asarray(image, np.float32) / np.float32(scale)
+    g = np.asarray(ground, np.float32) / np.float32(scale)
+    if a.shape != g.shape or a.ndim != 2:
+        raise ValueError(f"signal_to_clutter: image {a.shape} and ground {g.shape} must be the same (H, W)")
+    d = a - g
+    H, W = a.shape
+    c = np.reshape(np.asarray(centres_px, float), (-1, 2))
+    D = np.ravel(np.asarray(diameters_px, float))
+    out = np.full(len(D), np.nan)
+    bins = np.where(D >= min_px, np.round(2.0 * np.log2(np.maximum(D, 1e-9))) / 2.0, np.nan)
+
+    def band(x: np.ndarray, s: float) -> np.ndarray:
+        return cv2.GaussianBlur(x, (0, 0), max(s / 16.0, 0.5)) - cv2.GaussianBlur(x, (0, 0), s / 2.0)
+
+    for b in np.unique(bins[np.isfinite(bins)]):
+        s = float(2.0**b)
+        bd, bg = band(d, s), band(g, s)
+        for i in np.flatnonzero(bins == b):
+            (cx, cy), r, R = c[i], SCR_DISC * D[i], 0.5 * SCR_WINDOW * D[i]
+            x0, x1, y0, y1 = int(max(cx - r, 0)), int(min(cx + r + 1, W)), int(max(cy - r, 0)), int(min(cy + r + 1, H))
+            if x1 <= x0 or y1 <= y0:
+                continue
+            yy, xx = np.mgrid[y0:y1, x0:x1]
+            disc = np.hypot(xx + 0.5 - cx, yy + 0.5 - cy) <= r
+            X0, X1, Y0, Y1 = int(max(cx - R, 0)), int(min(cx + R + 1, W)), int(max(cy - R, 0)), int(min(cy + R + 1, H))
+            if not disc.any() or X1 - X0 < 2 or Y1 - Y0 < 2:
+                continue
+            signal = float(np.sqrt(np.mean(bd[y0:y1, x0:x1][disc] ** 2)))
+            out[i] = signal / max(float(np.std(bg[Y0:Y1, X0:X1])), 1e-9)
+    return out

@@ -118,6 +118,7 @@ class CraterScene:
     extent: tuple[float, float, float, float]
     lighting: Lighting
     visible: np.ndarray  # (N,) bool: bowl deeper than VISIBLE_DEPTH_RATIO x the terrain's relief at its scale
+    grey_without_craters: np.ndarray | None = None  # the same ground and sun without the craters (on request)
 
 
 def scene_craters(extent: tuple[float, float, float, float], gsd_m: float, sfd: CraterSFD, boost: float,
@@ -257,11 +258,20 @@ def albedo_fields(grey: np.ndarray, centres_px: np.ndarray, diameters_px: np.nda
                   rng: np.random.Generator) -> np.ndarray:
     """``grey`` times large-scale albedo patches and the bright (dust) or dark (sand) floors of
     some craters (a new array)."""
-    h, w = grey.shape
-    out = grey.astype(np.float32).copy()
+    patches, floors = albedo_multipliers(grey.shape, centres_px, diameters_px, var, rng)
+    return np.clip(grey.astype(np.float32) * patches * floors, 0.0, 1.0)
+
+
+def albedo_multipliers(shape_hw: tuple[int, int], centres_px: np.ndarray, diameters_px: np.ndarray,
+                       var: SceneVariation, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(large-scale albedo patches, crater floor fills) as multipliers (H, W) float32 of the
+    shaded grey levels; the floors belong to the craters, the patches to the ground."""
+    h, w = shape_hw
+    patches = np.ones((h, w), np.float32)
     sigma = rng.uniform(*var.albedo_field_sigma)
     if sigma > 0:
-        out *= np.exp(sigma * smooth_noise((h, w), max(h, w) / rng.uniform(1.5, 8.0), rng))
+        patches = np.exp(sigma * smooth_noise((h, w), max(h, w) / rng.uniform(1.5, 8.0), rng)).astype(np.float32)
+    floors = np.ones((h, w), np.float32)
     pick = np.flatnonzero((diameters_px >= 4.0) & (rng.random(len(diameters_px)) < var.floor_albedo_p))
     for k in pick:
         (cx, cy), r = centres_px[k], 0.5 * diameters_px[k]
@@ -272,12 +282,17 @@ def albedo_fields(grey: np.ndarray, centres_px: np.ndarray, diameters_px: np.nda
         yy, xx = np.mgrid[y0:y1, x0:x1]
         rho = np.hypot(xx + 0.5 - cx, yy + 0.5 - cy) / r
         m = np.clip((0.9 - rho) / 0.3, 0.0, 1.0) * rng.uniform(0.4, 1.0)
-        out[y0:y1, x0:x1] *= (1.0 + (_log_uniform(rng, (0.6, 1.6)) - 1.0) * m).astype(np.float32)
-    return np.clip(out, 0.0, 1.0)
+        floors[y0:y1, x0:x1] *= (1.0 + (_log_uniform(rng, (0.6, 1.6)) - 1.0) * m).astype(np.float32)
+    return patches, floors
 
 
-def render_crater_scene(var: SceneVariation, rng: np.random.Generator) -> CraterScene:
-    """One seeded cratered scene of ``var.size_px`` square pixels (see the module doc)."""
+def render_crater_scene(var: SceneVariation, rng: np.random.Generator, without_craters: bool = False) -> CraterScene:
+    """One seeded cratered scene of ``var.size_px`` square pixels (see the module doc).
+
+    ``without_craters``: also render the same ground without them (no crater relief, ejecta
+    blocks or floor fills; the same terrain, albedo and sun) as ``grey_without_craters``, for
+    the craters' photometric signal (:func:`sim.crater_datasets.signal_to_clutter`); the scene
+    itself and the generator's state are the same either way (one more shading pass)."""
     n, ss = var.size_px, var.supersample
     gsd = _log_uniform(rng, var.gsd_m)
     spacing = gsd / ss
@@ -295,6 +310,7 @@ def render_crater_scene(var: SceneVariation, rng: np.random.Generator) -> Crater
     sfd = CraterSFD(age_gyr=_log_uniform(rng, var.age_gyr), d_min_m=SIZE_BANDS_PX[0] * gsd,
                     d_max_m=min(var.d_max_px * gsd, 2000.0), density_scale=_log_uniform(rng, var.density_scale))
     craters = scene_craters(extent, gsd, sfd, _log_uniform(rng, var.large_crater_boost), var.d_max_px, rng)
+    z_ground = z
     z = stamp_craters(Heightmap(z, t_ext), craters).z_m
     seed = int(rng.integers(1 << 31))
     rock_mask = np.zeros(z.shape, dtype=bool)
@@ -310,6 +326,11 @@ def render_crater_scene(var: SceneVariation, rng: np.random.Generator) -> Crater
     grey = cv2.resize(fine, (n, n), interpolation=cv2.INTER_AREA)
     centres = np.column_stack([(craters.xy_m[:, 0] - extent[0]) / gsd, (extent[3] - craters.xy_m[:, 1]) / gsd])
     diam = craters.diameter_m / gsd
-    grey = albedo_fields(grey, centres, diam, var, rng)
+    patches, floors = albedo_multipliers(grey.shape, centres, diam, var, rng)
+    grey = np.clip(grey.astype(np.float32) * patches * floors, 0.0, 1.0)
+    ground = None
+    if without_craters:
+        bare = shade_heightfield(Heightmap(z_ground, t_ext), app, light, np.zeros(z_ground.shape, dtype=bool))[m:-m, m:-m]
+        ground = np.clip(cv2.resize(bare, (n, n), interpolation=cv2.INTER_AREA).astype(np.float32) * patches, 0.0, 1.0)
     return CraterScene(grey, craters, centres.reshape(-1, 2), diam, gsd, extent, light,
-                       visible_craters(diam, craters.depth_m, relief))
+                       visible_craters(diam, craters.depth_m, relief), ground)

@@ -60,3 +60,17 @@ def test_pick_crater_threshold_balances_the_goals():
     for other in np.unique(det[0].score):
         o = evaluate_craters(det, lab, float(other), (8.0, np.inf))
         assert min(o["precision"] - 0.9, o["recall"] - 0.8) <= best + 1e-12
+
+
+def test_scr_labels_ignore_the_craters_outside_the_ratio_bin():
+    from fgslam.bench.detect_craters import scr_labels
+
+    lab = [_labels([[20, 20], [60, 20], [100, 20], [140, 20]], [10, 20, 30, 3], ignore=[False, False, False, True])]
+    scr = [np.array([0.5, 2.5, 7.0, np.nan])]
+    out = scr_labels(lab, scr, 2.0, np.inf)[0]
+    assert list(out.ignore) == [True, False, False, True] and out.diameters_px is lab[0].diameters_px
+    det = [_dets([[20, 20], [60, 20]], [10, 20], [0.9, 0.8])]
+    r = evaluate_craters(det, scr_labels(lab, scr, 2.0, np.inf), 0.5, (8.0, np.inf))
+    # the detection of the faint crater counts neither way; the missed bright one counts
+    assert r["n_true"] == 2 and r["precision"] == 1.0 and r["recall"] == 0.5
+    assert scr_labels(lab, scr, 0.0, 1.0)[0].ignore.tolist() == [False, True, True, True]

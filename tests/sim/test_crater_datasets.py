@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.crater_datasets import CraterSetConfig, crater_labels, crater_samples, orbital_sensor
+from sim.crater_datasets import CraterSetConfig, crater_labels, crater_samples, orbital_sensor, signal_to_clutter
 from sim.crater_scene import SceneVariation, render_crater_scene, shade_heightfield, sun_shadows
 from sim.craters import Craters, stamp_craters
 from sim.render import Appearance, Lighting, Renderer
@@ -88,3 +88,52 @@ def test_seeded_scene_is_reproducible_and_labelled():
     assert s.image.shape == (128, 128) and len(s.labels) > 0
     centres, diam = s.labels.positives
     assert np.all(diam >= 4.0) and np.all((centres >= 0) & (centres < 128))
+
+
+def _crater_signal(n: int, centre: tuple[float, float], d: float) -> np.ndarray:
+    """A lit bowl's pattern: bright on one side of the disc, dark on the other (n x n, amplitude 1)."""
+    yy, xx = np.mgrid[0:n, 0:n] + 0.5
+    u, v = (xx - centre[0]) / (0.5 * d), (yy - centre[1]) / (0.5 * d)
+    return np.where(np.hypot(u, v) <= 1.0, u, 0.0).astype(np.float32)
+
+
+def test_signal_to_clutter_scales_with_the_signal_and_the_clutter():
+    n, d = 128, 16.0
+    noise = np.random.default_rng(0).standard_normal((n, n)).astype(np.float32)
+    pattern = _crater_signal(n, (40.0, 40.0), d)
+    centres, diam = np.array([[40.0, 40.0], [100.0, 90.0], [64.0, 64.0]]), np.array([d, d, 3.0])
+    ground = 0.5 + 0.01 * noise
+    r1 = signal_to_clutter(ground + 0.05 * pattern, ground, centres, diam)
+    r2 = signal_to_clutter(ground + 0.10 * pattern, ground, centres, diam)
+    assert r1[0] > 1.0 and r2[0] == pytest.approx(2.0 * r1[0], rel=1e-4)  # the band-pass is linear
+    assert r1[1] == pytest.approx(0.0, abs=1e-6)  # no signal where there is no crater
+    assert np.isnan(r1[2])  # under 4 px: not measured
+    rough = 0.5 + 0.05 * noise  # five times the clutter, the same crater
+    r3 = signal_to_clutter(rough + 0.05 * pattern, rough, centres, diam)
+    assert r3[0] == pytest.approx(r1[0] / 5.0, rel=1e-3)
+    # integer images are measured in their full scale: the same ratio from a 16-bit image
+    q = lambda x: np.rint(np.clip(x, 0, 1) * 65535).astype(np.uint16)  # noqa: E731
+    r4 = signal_to_clutter(q(ground + 0.05 * pattern), q(ground), centres, diam)
+    assert r4[0] == pytest.approx(r1[0], rel=0.02)
+    with pytest.raises(ValueError, match="must be the same"):
+        signal_to_clutter(ground, ground[:64], centres, diam)
+
+
+def test_samples_with_the_signal_to_clutter_ratio_are_the_same_images():
+    cfg = CraterSetConfig(scene=SceneVariation(size_px=256))
+    plain = next(crater_samples(1, 3, "eval", cfg))
+    s = next(crater_samples(1, 3, "eval", cfg, scr=True))
+    assert np.array_equal(plain.image, s.image) and np.array_equal(plain.labels.diameters_px, s.labels.diameters_px)
+    assert plain.scr is None and s.scr.shape == s.labels.diameters_px.shape
+    big = s.labels.diameters_px >= 4.0
+    assert np.all(np.isnan(s.scr[~big])) and np.all(np.isfinite(s.scr[big]) & (s.scr[big] >= 0.0))
+    # the ground without craters: the same image where no crater reaches
+    g = s.scene.grey_without_craters
+    assert g.shape == s.scene.grey.shape
+    yy, xx = np.mgrid[0:256, 0:256] + 0.5
+    far = np.ones((256, 256), bool)
+    for (cx, cy), dd in zip(s.scene.centres_px, s.scene.diameters_px):
+        far &= np.hypot(xx - cx, yy - cy) > 1.5 * dd + 3.0
+    assert far.sum() > 100
+    assert np.median(np.abs(g[far] - s.scene.grey[far])) < 0.02 * np.median(s.scene.grey)
+    assert np.median(np.abs(g[~far] - s.scene.grey[~far])) > 0.0  # and the craters' own pixels differ

@@ -43,6 +43,7 @@ def bench_detect_cmd(
             CraterBenchConfig,
             crater_markdown,
             crater_rows,
+            crater_scr_rows,
             crater_timing_rows,
             run_crater_bench,
         )
@@ -55,6 +56,7 @@ def bench_detect_cmd(
         with progress_ticks(err, label_width=45) as tick:
             res = run_crater_bench(ccfg, progress=tick)
         print_tables([("Crater detector on held-out rendered worlds", *crater_rows(res)),
+                      ("By photometric signal-to-clutter ratio (craters >= 8 px)", *crater_scr_rows(res)),
                       ("Crater detector timing (one thread)", *crater_timing_rows(res))], width=170)
         write_results(out, res, crater_markdown(res), err)
         return
