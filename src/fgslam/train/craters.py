@@ -10,7 +10,10 @@ after it (a coarser camera). Then the runtime's normalisation (:func:`reloc.dete
 normalised_grey`), contrast and brightness jitter, flips and quarter turns.
 
 Craters from 3.5 to 32 px across (in the crop) are the targets; smaller, larger or hidden ones
-are ignored around their centres. The runtime covers 4-200 px and more with an image pyramid,
+are ignored around their centres. With ``--min-scr R`` (scenes rendered with their ground
+without craters), a crater whose photometric signal-to-clutter ratio in the crop's own camera
+image is under R (:func:`sim.crater_datasets.signal_to_clutter`: what albedo texture, haze and
+noise hide) is ignored too, so the network is not taught to fire where the image shows nothing. The runtime covers 4-200 px and more with an image pyramid,
 keeping at each level the craters of a band inside that range (:mod:`reloc.detector.craters`).
 """
 
@@ -38,20 +41,24 @@ INPUT_SIZE_WH = (640, 640)  # the tile the runtime cuts large images into
 VAL_IMAGE_PX = 512  # side of the validation images the score threshold is chosen on
 
 
-def _render_one(args: tuple[int, str, int]) -> dict:
+def _render_one(args: tuple[int, str, int, bool]) -> dict:
     from sim.crater_datasets import scene_rng
     from sim.crater_scene import SceneVariation, render_crater_scene
 
-    seed, split, k = args
-    s = render_crater_scene(SceneVariation(**TRAIN_SCENES), scene_rng(seed, split, k))
-    return {"grey": np.rint(s.grey * 65535).astype(np.uint16), "centres": s.centres_px.astype(np.float32),
-            "diameters": s.diameters_px.astype(np.float32), "visible": s.visible}
+    seed, split, k, ground = args
+    s = render_crater_scene(SceneVariation(**TRAIN_SCENES), scene_rng(seed, split, k), without_craters=ground)
+    out = {"grey": np.rint(s.grey * 65535).astype(np.uint16), "centres": s.centres_px.astype(np.float32),
+           "diameters": s.diameters_px.astype(np.float32), "visible": s.visible}
+    if ground:
+        out["ground"] = np.rint(s.grey_without_craters * 65535).astype(np.uint16)
+    return out
 
 
-def render_scenes(n: int, seed: int, split: str = "train", workers: int = 1) -> list[dict]:
-    """``n`` clean scenes of ``split`` as dicts (grey uint16, centres, diameters, visible); the
-    same list whatever ``workers`` (each scene has its own seed)."""
-    jobs = [(seed, split, k) for k in range(n)]
+def render_scenes(n: int, seed: int, split: str = "train", workers: int = 1, ground: bool = False) -> list[dict]:
+    """``n`` clean scenes of ``split`` as dicts (grey uint16, centres, diameters, visible, and
+    with ``ground`` the same ground without craters, uint16); the same list whatever
+    ``workers`` (each scene has its own seed)."""
+    jobs = [(seed, split, k, ground) for k in range(n)]
     if workers <= 1:
         return [_render_one(j) for j in jobs]
     with ProcessPoolExecutor(workers) as pool:
@@ -66,31 +73,44 @@ def save_scenes(path: Path, scenes: list[dict]) -> None:
 def load_scenes(path: Path) -> list[dict]:
     """Scenes written by :func:`save_scenes`."""
     z = np.load(path)
-    return [{key: z[f"{key}{k}"] for key in ("grey", "centres", "diameters", "visible")} for k in range(int(z["n"]))]
+    keys = ("grey", "centres", "diameters", "visible") + (("ground",) if "ground0" in z.files else ())
+    return [{key: z[f"{key}{k}"] for key in keys} for k in range(int(z["n"]))]
 
 
-def crop_sample(scene: dict, rng: np.random.Generator, crop: int = CROP_PX):
+def crop_sample(scene: dict, rng: np.random.Generator, crop: int = CROP_PX, min_scr: float = 0.0):
     """One augmented training crop of ``scene``: (x (crop, crop) float32 normalised, positive
-    centres (P, 2) and diameters (P,), ignore boxes (Q, 4)), pixels of the crop."""
+    centres (P, 2) and diameters (P,), ignore boxes (Q, 4)), pixels of the crop. ``min_scr`` > 0:
+    targets whose signal-to-clutter ratio in this crop's camera image is lower are ignored
+    (needs the scene's ``ground``; the crop is the same as without it)."""
+    import copy
+
     import cv2
 
     from reloc.detector.image import normalised_grey
-    from sim.crater_datasets import orbital_sensor
+    from sim.crater_datasets import orbital_sensor, signal_to_clutter
 
     grey = scene["grey"]
+    if min_scr > 0 and "ground" not in scene:
+        raise ValueError("crop_sample: min_scr needs scenes rendered with their ground (render_scenes(..., ground=True))")
     size = min(grey.shape)
     s = float(np.exp(rng.uniform(*np.log(SCALE))))
     win = min(round(crop * s), size)
     s = win / crop
     x0, y0 = int(rng.integers(0, grey.shape[1] - win + 1)), int(rng.integers(0, grey.shape[0] - win + 1))
-    g = grey[y0:y0 + win, x0:x0 + win].astype(np.float32) / 65535.0
-    g = g ** np.float32(np.exp(rng.uniform(np.log(0.7), np.log(1.4))))  # the stretch of a product
-    if rng.random() < 0.5:
-        x, _ = normalised_grey(orbital_sensor(g, rng))
-        x = cv2.resize(x, (crop, crop), interpolation=cv2.INTER_AREA) if win != crop else x
-    else:
-        g = cv2.resize(g, (crop, crop), interpolation=cv2.INTER_AREA) if win != crop else g
-        x, _ = normalised_grey(orbital_sensor(g, rng))
+    gamma = np.float32(np.exp(rng.uniform(np.log(0.7), np.log(1.4))))  # the stretch of a product
+
+    def window(a: np.ndarray) -> np.ndarray:
+        return (a[y0:y0 + win, x0:x0 + win].astype(np.float32) / 65535.0) ** gamma
+
+    g = window(grey)
+    before = rng.random() < 0.5  # the camera before the reduction (its pixels: the window's) or after
+    if not before and win != crop:
+        g = cv2.resize(g, (crop, crop), interpolation=cv2.INTER_AREA)
+    camera = copy.deepcopy(rng) if min_scr > 0 else None
+    raw = orbital_sensor(g, rng)
+    x, _ = normalised_grey(raw)
+    if before and win != crop:
+        x = cv2.resize(x, (crop, crop), interpolation=cv2.INTER_AREA)
     x = (x - 0.5) * np.float32(np.exp(rng.uniform(-0.25, 0.25))) + np.float32(0.5 + rng.uniform(-0.08, 0.08))
     c = (scene["centres"] - np.array([x0, y0], np.float32)) / s
     d = scene["diameters"] / s
@@ -98,6 +118,13 @@ def crop_sample(scene: dict, rng: np.random.Generator, crop: int = CROP_PX):
     reaches = (c[:, 0] + r > 0) & (c[:, 0] - r < crop) & (c[:, 1] + r > 0) & (c[:, 1] - r < crop) & (d >= 2.0)
     inside = (c[:, 0] >= 0) & (c[:, 0] < crop) & (c[:, 1] >= 0) & (c[:, 1] < crop)
     pos = inside & scene["visible"] & (d >= TRAIN_DIAMETER_PX[0]) & (d <= TRAIN_DIAMETER_PX[1])
+    if min_scr > 0 and pos.any():
+        g0 = window(scene["ground"])
+        if not before and win != crop:
+            g0 = cv2.resize(g0, (crop, crop), interpolation=cv2.INTER_AREA)
+        k = 1.0 if not before else s  # crop pixels -> pixels of the camera image
+        ratio = signal_to_clutter(raw, orbital_sensor(g0, camera), c[pos] * k, d[pos] * k, min_px=0.0)
+        pos[np.flatnonzero(pos)[~(ratio >= min_scr)]] = False
     ign = reaches & ~pos & inside
     for _ in range(int(rng.integers(0, 4))):  # quarter turns (counter-clockwise)
         x = np.rot90(x)
@@ -111,9 +138,11 @@ def crop_sample(scene: dict, rng: np.random.Generator, crop: int = CROP_PX):
 
 
 def train_craters(scenes: list[dict], *, iters: int, batch: int, crop: int, lr: float, seed: int, device: str,
-                  budget_s: float | None = None, init: Path | None = None, arch: dict | None = None):
+                  budget_s: float | None = None, init: Path | None = None, arch: dict | None = None,
+                  min_scr: float = 0.0):
     """Train the crater network (``ARCH`` unless ``arch``; ``init`` resumes saved weights) on crops
-    of ``scenes``; returns (net, loss history) as :func:`fgslam.train.detector.fit`."""
+    of ``scenes``; returns (net, loss history) as :func:`fgslam.train.detector.fit`. ``min_scr``:
+    see :func:`crop_sample`."""
     import torch
 
     from fgslam.train.detector import fit, load_onnx_weights, load_weights, stack_targets
@@ -131,7 +160,7 @@ def train_craters(scenes: list[dict], *, iters: int, batch: int, crop: int, lr: 
     def next_batch():
         xs, tg = [], []
         for _ in range(batch):
-            x, c, d, boxes = crop_sample(scenes[int(rng.integers(len(scenes)))], rng, crop)
+            x, c, d, boxes = crop_sample(scenes[int(rng.integers(len(scenes)))], rng, crop, min_scr)
             xs.append(x)
             tg.append(centre_targets(c, d[:, None], boxes, crop, crop, stride, sigma_per_size=SIGMA_PER_DIAMETER))
         return np.stack(xs)[:, None], stack_targets(tg)
@@ -151,10 +180,13 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     t0 = time.perf_counter()
+    min_scr = float(getattr(args, "min_scr", 0.0) or 0.0)
     if args.cache is not None and args.cache.is_file():
         scenes = load_scenes(args.cache)
+        if min_scr > 0 and "ground" not in scenes[0]:
+            raise SystemExit(f"--min-scr needs a cache rendered with it (the ground without craters); {args.cache} has none")
     else:
-        scenes = render_scenes(args.images, args.seed, "train", workers=args.workers)
+        scenes = render_scenes(args.images, args.seed, "train", workers=args.workers, ground=min_scr > 0)
         if args.cache is not None:
             save_scenes(args.cache, scenes)
     t_render = time.perf_counter() - t0
@@ -165,13 +197,13 @@ def run(args) -> int:
     t1 = time.perf_counter()
     net, hist = train_craters(scenes, iters=args.iters, batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed,
                               device=device, budget_s=None if args.minutes is None else 60.0 * args.minutes,
-                              init=args.init)
+                              init=args.init, min_scr=min_scr)
     t_train = time.perf_counter() - t1
     info = {"images": len(scenes), "data": "sim.crater_datasets train split", "iters": len(hist), "arch": net.arch,
             "lr": args.lr, "batch": args.batch, "crop": args.crop, "scale": list(SCALE), "seed": args.seed,
             "device": device, "threads": args.threads, "data_s": round(t_render, 1), "train_s": round(t_train, 1),
             "final_loss": round(float(np.mean(hist[-50:])), 4), "command": getattr(args, "command", ""),
-            "init": None if args.init is None else str(args.init)}
+            "init": None if args.init is None else str(args.init), "min_scr": min_scr}
     if args.weights is not None:
         save_weights(net, args.weights)
     export_onnx(net, "crater", args.out, info, input_size_wh=INPUT_SIZE_WH,

@@ -362,6 +362,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flip-tta", type=int, choices=(0, 1), default=None, help="export with mirror test-time augmentation (default: 0)")
     ap.add_argument("--weights", type=Path, default=None, help="also save the trained weights (.pt) here")
     ap.add_argument("--workers", type=int, default=1, help="processes rendering the crater scenes")
+    ap.add_argument("--min-scr", type=float, default=0.0,
+                    help="crater: ignore targets under this photometric signal-to-clutter ratio in the crop (0: off)")
     ap.add_argument("--out", type=Path, required=True, help="ONNX file to write")
     args = ap.parse_args(argv)
     args.command = "python -m fgslam.train " + " ".join(sys.argv[1:] if argv is None else argv)
