@@ -126,3 +126,17 @@ def test_bad_image_files(tmp_path, capsys):
 def test_bench_detect_rejects_an_unknown_landmark(capsys):
     rc, err = _run(["bench", "detect", "--landmark", "boulder"], capsys)
     assert rc == 2 and "--landmark must be one of rock, crater, got 'boulder'" in err
+
+
+def test_bench_detect_craters_reports_the_signal_to_clutter_rows(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "bench"
+    rc, err = _run(["bench", "detect", "--landmark", "crater", "--quick", "--out", str(out)], capsys)
+    assert rc == 0, err
+    res = json.loads((out / "results.json").read_text())
+    goal_row, bins, visible = res["rows"][">= 8 px (goal)"], res["scr_rows"], res["visible_row"]
+    # the bins split the goal row's true craters (those with a ratio; none under 8 px is NaN)
+    assert sum(r["n_true"] for r in bins.values()) == goal_row["n_true"] > 0
+    assert visible["n_true"] == sum(r["n_true"] for name, r in bins.items() if float(name.split()[1].split("-")[0]) >= 2.0)
+    assert "signal-to-clutter" in (out / "table.md").read_text()
