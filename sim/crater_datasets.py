@@ -161,7 +161,7 @@ def crater_samples(n: int, seed: int, split: str = "eval", cfg: CraterSetConfig 
     for k in range(n):
         rng = scene_rng(seed, split, k)
         scene = render_crater_scene(cfg.scene, rng, without_craters=scr)
-        camera = copy.deepcopy(rng)  # the same camera (draws and noise) for the ground without craters
+        camera = copy.deepcopy(rng) if scr else None  # the same camera (draws and noise) for the ground
         image = orbital_sensor(scene.grey, rng, cfg.sensor)
         labels = crater_labels(scene.centres_px, scene.diameters_px, scene.visible, image.shape,
                                cfg.min_label_px, cfg.min_listed_px)

@@ -254,14 +254,6 @@ def shade_heightfield(terrain: Heightmap, app: Appearance, lighting: Lighting, r
     return grey.reshape(ny, nx)[::-1]
 
 
-def albedo_fields(grey: np.ndarray, centres_px: np.ndarray, diameters_px: np.ndarray, var: SceneVariation,
-                  rng: np.random.Generator) -> np.ndarray:
-    """``grey`` times large-scale albedo patches and the bright (dust) or dark (sand) floors of
-    some craters (a new array)."""
-    patches, floors = albedo_multipliers(grey.shape, centres_px, diameters_px, var, rng)
-    return np.clip(grey.astype(np.float32) * patches * floors, 0.0, 1.0)
-
-
 def albedo_multipliers(shape_hw: tuple[int, int], centres_px: np.ndarray, diameters_px: np.ndarray,
                        var: SceneVariation, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(large-scale albedo patches, crater floor fills) as multipliers (H, W) float32 of the

@@ -23,8 +23,8 @@ def test_scenes_with_their_ground_are_the_same_scenes(scene):
 def test_min_scr_moves_faint_targets_to_ignore_and_keeps_the_crop(scene):
     n_removed = 0
     for k in range(12):
-        x0, c0, d0, b0 = crop_sample(scene, np.random.default_rng(k), 128)
-        x1, c1, d1, b1 = crop_sample(scene, np.random.default_rng(k), 128, min_scr=2.0)
+        x0, c0, _, b0 = crop_sample(scene, np.random.default_rng(k), 128)
+        x1, c1, _, b1 = crop_sample(scene, np.random.default_rng(k), 128, min_scr=2.0)
         assert np.array_equal(x0, x1)  # the same draws, the same image
         kept = {(round(float(u), 3), round(float(v), 3)) for u, v in c1}
         assert kept <= {(round(float(u), 3), round(float(v), 3)) for u, v in c0}

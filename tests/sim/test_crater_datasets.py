@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.crater_datasets import CraterSetConfig, crater_labels, crater_samples, orbital_sensor, signal_to_clutter
+from sim.crater_datasets import (
+    CraterSetConfig,
+    crater_labels,
+    crater_samples,
+    orbital_sensor,
+    signal_to_clutter,
+)
 from sim.crater_scene import SceneVariation, render_crater_scene, shade_heightfield, sun_shadows
 from sim.craters import Craters, stamp_craters
 from sim.render import Appearance, Lighting, Renderer
@@ -112,7 +118,7 @@ def test_signal_to_clutter_scales_with_the_signal_and_the_clutter():
     r3 = signal_to_clutter(rough + 0.05 * pattern, rough, centres, diam)
     assert r3[0] == pytest.approx(r1[0] / 5.0, rel=1e-3)
     # integer images are measured in their full scale: the same ratio from a 16-bit image
-    q = lambda x: np.rint(np.clip(x, 0, 1) * 65535).astype(np.uint16)  # noqa: E731
+    q = lambda x: np.rint(np.clip(x, 0, 1) * 65535).astype(np.uint16)
     r4 = signal_to_clutter(q(ground + 0.05 * pattern), q(ground), centres, diam)
     assert r4[0] == pytest.approx(r1[0], rel=0.02)
     with pytest.raises(ValueError, match="must be the same"):

@@ -180,7 +180,7 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     t0 = time.perf_counter()
-    min_scr = float(getattr(args, "min_scr", 0.0) or 0.0)
+    min_scr = args.min_scr
     if args.cache is not None and args.cache.is_file():
         scenes = load_scenes(args.cache)
         if min_scr > 0 and "ground" not in scenes[0]:
