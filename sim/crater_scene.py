@@ -52,8 +52,11 @@ def relief_at_scales(z_m: np.ndarray, step: int, levels: int = 8) -> np.ndarray:
         if min(z.shape) < 8:
             break
         down = cv2.pyrDown(z)
-        up = cv2.pyrUp(down, dstsize=(z.shape[1], z.shape[0]))
-        out[k] = float(np.std((z - up)[4:-4, 4:-4]))
+        band = z - cv2.pyrUp(down, dstsize=(z.shape[1], z.shape[0]))
+        # the border's 4 px leave the pyramid's edge effects out where the band keeps 8 px or more
+        # inside (an 8 px level, as 1024 px scenes reach, was once left empty: NaN, every crater
+        # of that size then unseen)
+        out[k] = float(np.std(band[4:-4, 4:-4] if min(band.shape) >= 16 else band))
         z = down
     return out
 

@@ -143,3 +143,25 @@ def test_samples_with_the_signal_to_clutter_ratio_are_the_same_images():
     assert far.sum() > 100
     assert np.median(np.abs(g[far] - s.scene.grey[far])) < 0.02 * np.median(s.scene.grey)
     assert np.median(np.abs(g[~far] - s.scene.grey[~far])) > 0.0  # and the craters' own pixels differ
+
+
+@pytest.mark.parametrize("size", [64, 136, 1024])
+def test_relief_at_scales_is_finite_down_to_the_smallest_level(size):
+    """Every pyramid level a scene reaches gets a finite rms relief, also the 8-px level of a
+    1024 px scene (an empty interior once made it NaN, and a NaN level hides every crater of that
+    size); white noise has its relief in the finest band."""
+    import warnings
+
+    from sim.crater_scene import relief_at_scales
+
+    z = np.random.default_rng(3).standard_normal((size, size))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        relief = relief_at_scales(z, 1)
+    assert np.all(np.isfinite(relief))
+    reached = relief[relief > 0]
+    sizes = [size]
+    while (sizes[-1] + 1) // 2 >= 8:  # cv2.pyrDown halves, rounding up
+        sizes.append((sizes[-1] + 1) // 2)
+    assert len(reached) == len(sizes)
+    assert reached[0] == reached.max()
