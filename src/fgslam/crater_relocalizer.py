@@ -23,7 +23,9 @@ overrides (``CompareConfig.kind_relocalizers["craters"]``). What differs from ro
 - where too few craters are mapped to match (young, sparse ground: sparse-5km's first 400 m
   passes 4-6 catalogued craters and no catalogued rock), one crater identified alone with its
   catalog entry fixes the rover's position (``single_landmark``; its gate and false-alarm bound
-  in :class:`fgslam.relocalizer_config.RelocalizerConfig`).
+  in :class:`fgslam.relocalizer_config.RelocalizerConfig`), or two together; an identified
+  crater's catalog centre is taken as good as 0.06 of its diameter per axis (``catalog_sigma_rel``:
+  the orbital detector's centre error), not the matcher's 0.3 m, which a big crater's is not.
 
 Beside the rock relocalizer a run gets fixes from rocks, from craters or from both, whichever the
 place offers (each relocalizer labels its attempts with its kind).
@@ -42,7 +44,7 @@ CRATER_MATCHER = {
 CRATER_RELOCALIZER_DEFAULTS = RelocalizerConfig(
     period_s=10.0, min_landmarks=6, max_landmarks=80, max_radius_m=80.0, select="nearest", min_travel_m=1.0,
     fit_radius_m=40.0, sigma_floor_m=0.1, prior_min_radius_m=5.0, crop_margin_m=5.0, crop_snap_m=5.0,
-    single_landmark=True, track=True, matcher=CRATER_MATCHER,
+    single_landmark=True, track=True, catalog_sigma_rel=0.06, matcher=CRATER_MATCHER,
 )
 
 

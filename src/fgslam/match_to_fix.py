@@ -182,22 +182,32 @@ def _within(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, radius_m: 
     return [int(i) for i in np.asarray(idx, dtype=int) if np.hypot(*(lmap.xyz_world_m[i, :2] - xy_rover)) <= radius_m]
 
 
+def catalog_sigma(cfg: RelocalizerConfig, sigma_m: float, size_m) -> np.ndarray | float:
+    """Per-axis sigma of a catalog entry of size ``size_m`` (scalar or array): the matcher's
+    ``sigma_m``, and ``cfg.catalog_sigma_rel`` of the size where that is more (in quadrature)."""
+    return np.hypot(sigma_m, cfg.catalog_sigma_rel * np.asarray(size_m, float))
+
+
 class _Gate(NamedTuple):
-    """A landmark's own gate (:func:`_own_gate`) with the chance density around it."""
+    """A landmark's own gate (:func:`_own_gate`) with the chance density around it and the
+    catalog sigma it was drawn with."""
 
     rows: np.ndarray
     d2: np.ndarray
     rho: float
     S: np.ndarray
+    sigma_m: float
 
 
 def _own_gate(lmap: LandmarkMap, i: int, catalog_xy: np.ndarray, catalog_size: np.ndarray, tree,
               cfg: RelocalizerConfig, sigma_m: float, size_ratio_max: float | None,
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Landmark ``i``'s own gate: its planar world covariance plus ``sigma_m`` per axis ``S``
-    (2, 2), and the size-compatible catalog rows inside it (chi-square ``single_gate_chi2``) with
-    their squared Mahalanobis distances; None when ``S`` is not a covariance."""
-    S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_m ** 2 * np.eye(2)
+    """Landmark ``i``'s own gate: its planar world covariance plus the catalog's sigma per axis
+    at the landmark's size (:func:`catalog_sigma`; its entries are size-compatible) ``S`` (2, 2),
+    and the size-compatible catalog rows inside it (chi-square ``single_gate_chi2``) with their
+    squared Mahalanobis distances; None when ``S`` is not a covariance."""
+    sigma_c = float(catalog_sigma(cfg, sigma_m, lmap.size_m[i]))
+    S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_c ** 2 * np.eye(2)
     if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
         return None
     l_xy = lmap.xyz_world_m[i, :2]
@@ -293,15 +303,20 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
         gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
         if gate is not None and len(gate[1]):
             S, rows, d2 = gate
-            gates[i] = _Gate(rows, d2, _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box), S)
+            gates[i] = _Gate(rows, d2, _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box), S,
+                             float(catalog_sigma(cfg, sigma_m, lmap.size_m[i])))
     if len(gates) < 2:
         return None
     n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled
-    white2 = 2.0 * (cfg.sigma_floor_m ** 2 + sigma_m ** 2) * np.eye(2)  # the separation's gate at its narrowest
+
+    def white2(gi: _Gate, gj: _Gate) -> np.ndarray:  # the separation's gate at its narrowest: floors and entries
+        return (2.0 * cfg.sigma_floor_m ** 2 + gi.sigma_m ** 2 + gj.sigma_m ** 2) * np.eye(2)
+
     # the smallest bound any pair could reach (own gates at d2 = 0, the narrowest separation gate):
     # above the limit, no pair can pass (a dense catalog: decided before the pairs are looked at)
+    narrowest = min(gates.values(), key=lambda g: g.sigma_m)
     lowest = (n_pairs * min(_chance_odds(g.rho, g.S, 0.0) for g in gates.values())
-              * _chance_odds(min(g.rho for g in gates.values()), white2, 0.0))
+              * _chance_odds(min(g.rho for g in gates.values()), white2(narrowest, narrowest), 0.0))
     if lowest > cfg.single_max_false_alarm:
         return None
     best: PairIdentification | None = None
@@ -310,7 +325,7 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
         for j in keys[a_pos + 1:]:
             gi, gj = gates[i], gates[j]
             u = lmap.xyz_world_m[j, :2] - lmap.xyz_world_m[i, :2]
-            S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + white2
+            S_rel = psd_part(lmap.cov_world_m2[j, :2, :2] - lmap.cov_world_m2[i, :2, :2]) + white2(gi, gj)
             W_rel = np.linalg.inv(S_rel)
             e = catalog_xy[gj.rows][None, :, :] - catalog_xy[gi.rows][:, None, :] - u  # (n_i, n_j, 2)
             d2_rel = np.einsum("abi,ij,abj->ab", e, W_rel, e)
@@ -329,14 +344,15 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
 
 
 def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: np.ndarray, catalog_xy: np.ndarray,
-                  cfg: RelocalizerConfig, sigma_m: float, t_recv: float, cov_scale: float = 1.0,
+                  cfg: RelocalizerConfig, sigma_m: float | np.ndarray, t_recv: float, cov_scale: float = 1.0,
                   catalog_rows: tuple[int, int] | None = None, source: str = "") -> GlobalFix:
     """Planar fix (x, y, yaw) at ``est.t`` from two landmarks ``landmarks_xy`` (2, 2, estimated
     world) identified with catalog entries ``catalog_xy`` (2, 2): the rigid motion that puts the
     landmarks' midpoint on the entries' and their direction on theirs, applied to the estimate.
 
     Its covariance is the first-order image (central differences over the eight coordinates) of
-    the entries' ``sigma_m`` per axis and each landmark's error relative to the rover
+    the entries' ``sigma_m`` per axis (one for both, or one each: :func:`catalog_sigma`) and
+    each landmark's error relative to the rover
     (``relative_cov_xy`` (2, 2, 2), :func:`rover_relative_cov_xy`, never below ``sigma_floor_m``),
     times ``inflation``^2 as a matched fix's: the heading is as good as the pair is long."""
     L = np.asarray(landmarks_xy, float).reshape(2, 2)
@@ -360,7 +376,7 @@ def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: 
     P = np.zeros((8, 8))
     for k in range(2):
         P[2 * k:2 * k + 2, 2 * k:2 * k + 2] = psd_part(np.asarray(relative_cov_xy, float)[k], cfg.sigma_floor_m ** 2)
-    P[4:, 4:] = sigma_m ** 2 * np.eye(4)
+    P[4:, 4:] = np.diag(np.repeat(np.broadcast_to(np.asarray(sigma_m, float) ** 2, (2,)), 2))
     cov = cfg.inflation ** 2 * (J @ P @ J.T)
     out = pose(p0)
     return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(out[0]), y_m=float(out[1]),
@@ -399,7 +415,7 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     moved by what puts the landmark on the entry, ``xy = xy_est + (catalog - landmark)``; the
     heading stays the estimate's with ``single_sigma_yaw_rad`` (no heading information).
 
-    Its planar covariance is the catalog's ``sigma_m`` per axis plus the landmark's error
+    Its planar covariance is the entry's ``sigma_m`` per axis (:func:`catalog_sigma`) plus the landmark's error
     relative to the rover, taken as the difference of its world covariance and the rover's,
     either way (the landmark is placed from the rover's poses, so their shared drift cancels;
     what the landmark holds beyond the rover is its own error, what the rover holds beyond the

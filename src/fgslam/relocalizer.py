@@ -32,6 +32,7 @@ from fgslam.backends.reanchor import is_lost
 from fgslam.local_window import LocalMapWindow
 from fgslam.match_to_fix import (
     catalog_box_of,
+    catalog_sigma,
     fix_from_pair,
     fix_from_similarity,
     fix_from_single,
@@ -276,7 +277,8 @@ class Relocalizer:
             ids, rows = np.array(pair.landmarks), np.array(pair.rows)
             l_xy, c_xy = lmap.xyz_world_m[ids, :2], self.catalog.xy_m[rows]
             rel = rover_relative_cov_xy(lmap.cov_world_m2[ids, :2, :2], np.asarray(est.cov)[:2, :2])
-            fix = fix_from_pair(est, l_xy, rel, c_xy, cfg, sigma_m, t_recv=est.t + latency,
+            sigma_c = catalog_sigma(cfg, sigma_m, np.asarray(self.catalog.size_m, float)[rows])
+            fix = fix_from_pair(est, l_xy, rel, c_xy, cfg, sigma_c, t_recv=est.t + latency,
                                 cov_scale=self._correlation_scale(est.t, rows), catalog_rows=pair.rows,
                                 source=self.kinds[0])
             self._note_fix(est.t, rows)
@@ -287,7 +289,8 @@ class Relocalizer:
         if hit is None:
             return None
         l_xy, c_xy = lmap.xyz_world_m[hit.landmark, :2], self.catalog.xy_m[hit.row]
-        fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_m,
+        sigma_c = float(catalog_sigma(cfg, sigma_m, float(np.asarray(self.catalog.size_m, float)[hit.row])))
+        fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_c,
                               t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])),
                               catalog_row=hit.row, source=self.kinds[0])
         self._note_fix(est.t, np.array([hit.row]))

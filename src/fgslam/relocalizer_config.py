@@ -153,6 +153,15 @@ class RelocalizerConfig:
     single_max_false_alarm: Annotated[float, Interval(gt=0, lt=1)] = 1e-3
     single_density_radius_m: Positive = 200.0
     single_sigma_yaw_rad: Positive = 0.5  # the fix's heading sigma: no heading information
+    # An identified landmark's catalog entry is placed to the matcher's sigma_m per axis, and a
+    # big one no better than a fraction of its size: an orbital crater's centre to ~0.06 D per
+    # axis (the detector's centre error, mean 0.075 D radial, docs/detectors.md). The single and
+    # pair identifications (their gates, chance odds and fixes) take hypot(sigma_m, this x size)
+    # per entry (fgslam.match_to_fix.catalog_sigma); 0: sigma_m for every size (rocks). With the
+    # matcher's 0.3 m for every crater, one 8.2 m crater whose catalog centre was 1.7 m off (0.21 D)
+    # gave single fixes claiming 0.58 m and took iSAM2 from 0.33 to 1.37 m off on sparse-5km
+    # (docs/craters.md)
+    catalog_sigma_rel: NonNegative = 0.0
     matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
 
     def __post_init__(self) -> None:

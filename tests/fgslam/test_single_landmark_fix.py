@@ -56,12 +56,43 @@ def test_one_identified_crater_fixes_the_position_within_its_covariance():
     assert np.linalg.norm(err) < 1e-9  # exact: the map's only error was the drift
     assert att.fix.yaw_rad == pytest.approx(est.yaw_rad)
     cov = att.fix.cov_xyyaw
-    # the catalog's 0.3 m per axis plus the crater's 0.15 m relative to the rover (not the 0.5 m
-    # drift), inflated as a matched fix is (1.75)
-    assert np.allclose(cov[:2, :2], 1.75**2 * (0.3**2 + 0.15**2) * np.eye(2), atol=1e-9)
+    # the catalog's 0.3 m per axis and 0.06 of the entry's 3.1 m in quadrature, plus the crater's
+    # 0.15 m relative to the rover (not the 0.5 m drift), inflated as a matched fix is (1.75)
+    assert np.allclose(cov[:2, :2], 1.75**2 * (0.3**2 + (0.06 * 3.1) ** 2 + 0.15**2) * np.eye(2), atol=1e-9)
     assert np.sqrt(cov[2, 2]) == pytest.approx(0.5)  # no heading information
     assert 0 < att.false_alarm <= 1e-3
     assert np.allclose(att.world_xy, [CRATER]) and np.allclose(att.local_xy, [CRATER + DRIFT])
+
+
+@pytest.mark.parametrize("diameter_m", [3.0, 12.0])
+def test_a_big_craters_fix_claims_its_catalog_centre_error(diameter_m):
+    """Catalog centres drawn off by 0.3 m (half a pixel, the rim fits) and 0.06 D (the orbital
+    detector's error) per axis: over 300 draws the single fixes' mean NEES (x, y; inflation taken
+    out) is 2 for a 3 m and a 12 m crater alike. With the matcher's 0.3 m for every size
+    (``catalog_sigma_rel: 0``) the 12 m crater's fixes claim a third of their error."""
+    rng = np.random.default_rng(21)
+    est = _est(1.0)  # a drift of 1.4 m: the gate holds it and the entry's error
+    lmap = _map(est, rel_sigma_m=0.05)
+    lmap = LandmarkMap(lmap.ids, lmap.xyz_world_m, lmap.cov_world_m2, np.array([diameter_m]), lmap.n_obs, "craters")
+    truth = est.position_m[:2] - DRIFT
+
+    def mean_nees(**kw) -> float:
+        nees = []
+        for _ in range(300):
+            cat = _catalog()
+            xy = cat.xy_m.copy()
+            xy[0] = CRATER + rng.normal(0.0, np.hypot(0.3, 0.06 * diameter_m), 2)
+            size = cat.size_m.copy()
+            size[0] = diameter_m
+            att = _reloc(RockCatalog(xy, size, cat.score), single_max_false_alarm=0.5, **kw).attempt({"craters": lmap}, est)
+            assert att.status == "fix" and att.fix.catalog_rows == (0,)
+            e = np.array([att.fix.x_m, att.fix.y_m]) - truth
+            nees.append(e @ np.linalg.solve(att.fix.cov_xyyaw[:2, :2] / 1.75**2, e))
+        return float(np.mean(nees))
+
+    assert 1.6 < mean_nees() < 2.4
+    if diameter_m > 10:
+        assert mean_nees(catalog_sigma_rel=0.0) > 5.0
 
 
 def test_a_second_use_of_the_same_crater_is_deweighted():
