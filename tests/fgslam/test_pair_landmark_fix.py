@@ -128,3 +128,30 @@ def test_a_dense_field_refuses_the_pair():
     est, lmap = _scene()
     cat = _catalog(n=2500, half_m=50.0)
     assert Relocalizer(cat, _cfg()).attempt({"rocks": lmap}, est).status == "too few landmarks"
+
+
+def test_the_pair_fix_takes_each_entrys_own_sigma():
+    """A small and a big crater: entries off by their own sigma each (0.3 m and 0.9 m per axis,
+    ``catalog_sigma`` of 3 m and 14 m craters at 0.06 D). Given one sigma each, the fix's mean
+    NEES over 400 draws is 3; given the small one's for both, the fix claims too little."""
+    from fgslam.match_to_fix import catalog_sigma
+
+    rng = np.random.default_rng(12)
+    est, _ = _scene()
+    cfg = _cfg(catalog_sigma_rel=0.06)
+    sig = catalog_sigma(cfg, 0.3, np.array([3.0, 14.0]))
+    assert sig == pytest.approx([np.hypot(0.3, 0.18), np.hypot(0.3, 0.84)])
+    rel = np.tile(np.eye(2) * 0.05**2, (2, 1, 1))
+
+    def mean_nees(sigma_m) -> float:
+        nees = []
+        for _ in range(400):
+            L = _to_estimate(ROCKS) + rng.normal(0.0, 0.05, (2, 2))
+            C = ROCKS + rng.normal(0.0, 1.0, (2, 2)) * sig[:, None]
+            fix = fix_from_pair(est, L, rel, C, cfg, sigma_m, t_recv=est.t)
+            e = np.array([fix.x_m - ROVER[0], fix.y_m - ROVER[1], np.angle(np.exp(1j * (fix.yaw_rad - YAW)))])
+            nees.append(e @ np.linalg.solve(fix.cov_xyyaw / cfg.inflation**2, e))
+        return float(np.mean(nees))
+
+    assert 2.6 < mean_nees(sig) < 3.4
+    assert mean_nees(float(sig[0])) > 5.0
