@@ -201,11 +201,11 @@ class _Gate(NamedTuple):
 
 def _own_gate(lmap: LandmarkMap, i: int, catalog_xy: np.ndarray, catalog_size: np.ndarray, tree,
               cfg: RelocalizerConfig, sigma_m: float, size_ratio_max: float | None,
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Landmark ``i``'s own gate: its planar world covariance plus the catalog's sigma per axis
     at the landmark's size (:func:`catalog_sigma`; its entries are size-compatible) ``S`` (2, 2),
-    and the size-compatible catalog rows inside it (chi-square ``single_gate_chi2``) with their
-    squared Mahalanobis distances; None when ``S`` is not a covariance."""
+    the size-compatible catalog rows inside it (chi-square ``single_gate_chi2``) with their
+    squared Mahalanobis distances, and that sigma; None when ``S`` is not a covariance."""
     sigma_c = float(catalog_sigma(cfg, sigma_m, lmap.size_m[i]))
     S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_c ** 2 * np.eye(2)
     if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
@@ -217,7 +217,7 @@ def _own_gate(lmap: LandmarkMap, i: int, catalog_xy: np.ndarray, catalog_size: n
     d = catalog_xy[rows] - l_xy
     d2 = np.einsum("ki,ij,kj->k", d, np.linalg.inv(S), d) if len(rows) else np.zeros(0)
     inside = d2 <= cfg.single_gate_chi2
-    return S, rows[inside], d2[inside]
+    return S, rows[inside], d2[inside], sigma_c
 
 
 def _chance_density(lmap: LandmarkMap, i: int, catalog_size: np.ndarray, tree, cfg: RelocalizerConfig,
@@ -247,7 +247,7 @@ def identify_single(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, ca
         gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
         if gate is None or len(gate[1]) != 1:  # nothing there, or ambiguous
             continue
-        S, rows, d2 = gate
+        S, rows, d2, _ = gate
         rho = _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box)
         false_alarm = _chance_odds(rho, S, float(d2[0]))
         if false_alarm > cfg.single_max_false_alarm:
@@ -302,9 +302,9 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
     for i in near_rover:
         gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)
         if gate is not None and len(gate[1]):
-            S, rows, d2 = gate
+            S, rows, d2, sigma_c = gate
             gates[i] = _Gate(rows, d2, _chance_density(lmap, i, catalog_size, tree, cfg, sigma_m, size_ratio_max, box), S,
-                             float(catalog_sigma(cfg, sigma_m, lmap.size_m[i])))
+                             sigma_c)
     if len(gates) < 2:
         return None
     n_pairs = len(near_rover) * (len(near_rover) - 1) // 2  # every pair is a chance to be fooled

@@ -267,8 +267,9 @@ class Relocalizer:
             self._single_box = catalog_box_of(self.catalog.xy_m)
         mc = self._matcher_config()
         sigma_m = float(mc.sigma_m)
-        args = (lmap, idx, est.position_m, self.catalog.xy_m, np.asarray(self.catalog.size_m, float),
-                self._single_tree, cfg, sigma_m, mc.size_ratio_max, self._single_box)
+        sizes = np.asarray(self.catalog.size_m, float)
+        args = (lmap, idx, est.position_m, self.catalog.xy_m, sizes, self._single_tree, cfg, sigma_m,
+                mc.size_ratio_max, self._single_box)
         pair = identify_pair(*args) if cfg.pair_landmarks and idx.size >= 2 else None
         hit = None if pair is not None or not cfg.single_landmark else identify_single(*args)
         dt = dt_match + time.perf_counter() - t0
@@ -277,7 +278,7 @@ class Relocalizer:
             ids, rows = np.array(pair.landmarks), np.array(pair.rows)
             l_xy, c_xy = lmap.xyz_world_m[ids, :2], self.catalog.xy_m[rows]
             rel = rover_relative_cov_xy(lmap.cov_world_m2[ids, :2, :2], np.asarray(est.cov)[:2, :2])
-            sigma_c = catalog_sigma(cfg, sigma_m, np.asarray(self.catalog.size_m, float)[rows])
+            sigma_c = catalog_sigma(cfg, sigma_m, sizes[rows])
             fix = fix_from_pair(est, l_xy, rel, c_xy, cfg, sigma_c, t_recv=est.t + latency,
                                 cov_scale=self._correlation_scale(est.t, rows), catalog_rows=pair.rows,
                                 source=self.kinds[0])
@@ -289,7 +290,7 @@ class Relocalizer:
         if hit is None:
             return None
         l_xy, c_xy = lmap.xyz_world_m[hit.landmark, :2], self.catalog.xy_m[hit.row]
-        sigma_c = float(catalog_sigma(cfg, sigma_m, float(np.asarray(self.catalog.size_m, float)[hit.row])))
+        sigma_c = float(catalog_sigma(cfg, sigma_m, sizes[hit.row]))
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_c,
                               t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])),
                               catalog_row=hit.row, source=self.kinds[0])
