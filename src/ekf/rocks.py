@@ -128,6 +128,7 @@ class RockUpdate:
             size_m=s.book.size_m[rows],
             n_obs=s.book.n_obs[rows].copy(),
             kind=self.kind,
+            catalog_row=s.book.catalog_row[rows].copy(),
         )
 
     def update(self, s: FilterState, obs: RockObservations, count: bool = True) -> LandmarkUpdateReport:

@@ -146,6 +146,9 @@ class EkfSlam(Backend):
         self._reject_reasons: dict[str, int] = {}
         self._count["n_consensus_resets"] = 0
         self._count["n_heights_refused"] = 0  # fixes applied without their height (FixGateConfig.height_chi2)
+        # fixes applied as catalog entries on their landmarks (FixGateConfig.anchors), the landmarks
+        # anchored, and anchors whose landmark a replay no longer had
+        self._count.update(n_anchor_fixes=0, n_anchors=0, n_anchors_lost_in_replay=0)
         self._applied: GlobalFix | None = None  # the last fix as _gate_and_apply applied it
         self._count["n_first_estimate_resets"] = 0  # pose corrections beyond first_estimate_tol_m
         self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
@@ -193,16 +196,77 @@ class EkfSlam(Backend):
         s = self._s
         if fix.t_meas > s.t + self.config.future_tolerance_s:
             return self._rejected(fix, f"ahead of the filter (t_meas {fix.t_meas:.3f} s > state {s.t:.3f} s)")
+        if fix.anchors and self.config.fix_gate.anchors:
+            outcome = self._apply_anchors(fix)
+            if outcome is not None:  # the entries on the landmarks; the height (if any) on the pose
+                if outcome.accepted and fix.height is not None:
+                    self._apply_pose_fix(fix.height_only())
+                return self._counted(outcome)
+        return self._counted(self._apply_pose_fix(fix))
+
+    def _apply_pose_fix(self, fix: GlobalFix) -> FixOutcome:
+        """The fix on the pose at its ``t_meas`` (rolled back to when late), not counted."""
+        s = self._s
         if fix.t_meas >= s.t_input:
             outcome = self._gate_and_apply(fix)
             if outcome.accepted:
                 self._hist.log.append(Entry("fix", fix.t_meas, self._applied))
-            return self._counted(outcome)
+            return outcome
         if fix.t_meas < s.t_input - self.config.history_s or fix.t_meas < self._hist.t_start:
-            return self._rejected(
-                fix, f"older than history (t_meas {fix.t_meas:.3f} s, history starts at "
+            return FixOutcome(
+                fix, False, f"older than history (t_meas {fix.t_meas:.3f} s, history starts at "
                 f"{max(self._hist.t_start, s.t_input - self.config.history_s):.3f} s)")
-        return self._counted(self._apply_late(fix))
+        return self._apply_late(fix)
+
+    def _anchor_rows(self, fix: GlobalFix) -> np.ndarray | None:
+        """The state rows of the landmarks ``fix``'s anchors name, or None when one is not a
+        confirmed landmark of the state (of its kind)."""
+        book, rows = self._s.book, []
+        for a in fix.anchors:
+            upd = self._kinds.named(a.kind)
+            if upd is None:
+                return None
+            hit = np.flatnonzero((book.ids == a.landmark_id) & (book.kind == upd.code) & book.confirmed)
+            if hit.size != 1:
+                return None
+            rows.append(int(hit[0]))
+        return np.array(rows, dtype=int)
+
+    def _apply_anchors(self, fix: GlobalFix, force: bool = False) -> FixOutcome | None:
+        """Put ``fix``'s catalog entries on its landmarks (``FixGateConfig.anchors``): the update
+        ``z = l_xy + v``, ``v`` the entry's error, on the landmarks' (x, y) now (a landmark does not
+        move, so no rollback), gated on its squared Mahalanobis distance (``anchor_chi2_per_dof``
+        times 2 per landmark) and on the distance gate per landmark. None when a landmark has left
+        the state (the fix is then taken as a pose); ``force``: a replay, no gate."""
+        s, gate = self._s, self.config.fix_gate
+        rows = self._anchor_rows(fix)
+        if rows is None:
+            return None
+        if not force and np.any(s.book.catalog_row[rows] >= 0):
+            return FixOutcome(fix, False, "anchored already: a landmark holds a catalog entry")
+        cols = s.landmark_cols(rows).reshape(-1, 3)[:, :2].ravel()
+        nu = np.concatenate([a.xy_m - s.l_world[r, :2] for a, r in zip(fix.anchors, rows)])
+        R = np.zeros((len(cols), len(cols)))
+        for k, a in enumerate(fix.anchors):
+            R[2 * k:2 * k + 2, 2 * k:2 * k + 2] = a.cov_xy
+        if not force:
+            dist = float(np.max(np.hypot(nu[0::2], nu[1::2])))
+            if dist > gate.distance_m:
+                return FixOutcome(fix, False, f"distance gate (anchor) {dist:.2f} m > {gate.distance_m:.2f} m")
+            S = s.P[np.ix_(cols, cols)] + R
+            d2 = float(nu @ np.linalg.solve(S, nu))
+            if not d2 <= gate.anchor_chi2_per_dof * len(cols):
+                return FixOutcome(fix, False, f"Mahalanobis gate (anchor) d2 {d2:.1f} > "
+                                  f"{gate.anchor_chi2_per_dof * len(cols):.2f}", d2)
+        s.P, res = joseph_update(s.P, cols, np.eye(len(cols)), nu, R)
+        s.inject(res.dx)
+        s.book.catalog_row[rows] = [a.catalog_row for a in fix.anchors]
+        self._record()
+        self._hist.log.append(Entry("anchor", s.t, fix))
+        if not self._replaying:
+            self._count["n_anchor_fixes"] += 1
+            self._count["n_anchors"] += len(rows)
+        return FixOutcome(fix, True, "", res.d2)
 
     def estimate(self) -> PoseEstimate:
         """Current pose of base_link in world with its (6, 6) covariance over ``[dp, dtheta]``."""
@@ -528,9 +592,12 @@ class EkfSlam(Backend):
             elif e.kind == "fix":
                 self._gate_and_apply(e.item, force=True)
                 self._hist.log.append(e)
+            elif e.kind == "anchor":  # its landmarks may be gone in the replay: then nothing to anchor
+                if self._apply_anchors(e.item, force=True) is None:
+                    self._count["n_anchors_lost_in_replay"] += 1
             else:
                 raise EkfError(f"history entry of unknown kind {e.kind!r} at t={e.t}: the log holds steps, "
-                               "landmark frames and fixes only")
+                               "landmark frames, fixes and anchors only")
 
     # ------------------------------------------------------------------ helpers
     def _rejected(self, fix: GlobalFix, reason: str) -> FixOutcome:

@@ -25,7 +25,9 @@ overrides (``CompareConfig.kind_relocalizers["craters"]``). What differs from ro
   catalog entry fixes the rover's position (``single_landmark``; its gate and false-alarm bound
   in :class:`fgslam.relocalizer_config.RelocalizerConfig`), or two together; an identified
   crater's catalog centre is taken as good as 0.06 of its diameter per axis (``catalog_sigma_rel``:
-  the orbital detector's centre error), not the matcher's 0.3 m, which a big crater's is not.
+  the orbital detector's centre error), not the matcher's 0.3 m, which a big crater's is not;
+- such a fix names its craters and entries (``anchor_landmarks``): a back-end puts each entry on
+  its crater once, rather than the same entry's error on the pose at every later fix.
 
 Beside the rock relocalizer a run gets fixes from rocks, from craters or from both, whichever the
 place offers (each relocalizer labels its attempts with its kind).
@@ -44,7 +46,7 @@ CRATER_MATCHER = {
 CRATER_RELOCALIZER_DEFAULTS = RelocalizerConfig(
     period_s=10.0, min_landmarks=6, max_landmarks=80, max_radius_m=80.0, select="nearest", min_travel_m=1.0,
     fit_radius_m=40.0, sigma_floor_m=0.1, prior_min_radius_m=5.0, crop_margin_m=5.0, crop_snap_m=5.0,
-    single_landmark=True, track=True, catalog_sigma_rel=0.06, matcher=CRATER_MATCHER,
+    single_landmark=True, track=True, catalog_sigma_rel=0.06, anchor_landmarks=True, matcher=CRATER_MATCHER,
 )
 
 

@@ -53,6 +53,7 @@ class WrongFixes(WrappedProducer):
             y_m=fix.y_m + offset * np.sin(bearing),
             yaw_rad=float(wrap_angle(fix.yaw_rad + sign * np.deg2rad(self.fault.yaw_deg))),
             height=None,  # a height read at the right place would tell the wrong fix apart: none
+            anchors=(),  # a wrong pose, not the right landmarks' entries
         )
         self.n_wrong += 1
         return dataclasses.replace(att, fix=wrong, tracked=False)

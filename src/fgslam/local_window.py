@@ -45,7 +45,7 @@ class LocalMapWindow:
         self.path_done_m = 0.0
         self._last_xy: np.ndarray | None = None
         self._prev: dict[int, np.ndarray] = {}  # id -> planar position in the previous snapshot
-        self._kept: dict[int, tuple] = {}  # dropped id -> (xyz, cov, size, n_obs, path at last sight)
+        self._kept: dict[int, tuple] = {}  # dropped id -> (xyz, cov, size, n_obs, path at last sight, catalog row)
         self._last: LandmarkMap | None = None  # the previous snapshot
         self.n_kept_max = 0
 
@@ -66,12 +66,12 @@ class LocalMapWindow:
         if self._kept and common:
             R, t = rigid_2d(np.array([self._prev[i] for i in common]), np.array([now[i] for i in common]))
             if not (np.allclose(R, np.eye(2)) and np.allclose(t, 0.0)):
-                for i, (xyz, cov, size, n_obs, seen) in self._kept.items():
+                for i, (xyz, cov, size, n_obs, seen, row) in self._kept.items():
                     xyz = xyz.copy()
                     xyz[:2] = R @ xyz[:2] + t
                     cov = cov.copy()
                     cov[:2, :2] = R @ cov[:2, :2] @ R.T
-                    self._kept[i] = (xyz, cov, size, n_obs, seen)
+                    self._kept[i] = (xyz, cov, size, n_obs, seen, row)
         if gone:
             last = self._last
             rows = {int(i): r for r, i in enumerate(last.ids)}
@@ -79,7 +79,7 @@ class LocalMapWindow:
                 r = rows.get(i)
                 if r is not None:
                     self._kept[i] = (last.xyz_world_m[r].copy(), last.cov_world_m2[r].copy(), float(last.size_m[r]),
-                                     int(last.n_obs[r]), self.path_done_m)
+                                     int(last.n_obs[r]), self.path_done_m, int(last.anchored_rows[r]))
         for i in [i for i in self._kept if i in now]:  # back in the back-end's map
             del self._kept[i]
         old = [i for i, rec in self._kept.items() if self.path_done_m - rec[4] > self.path_m]
@@ -99,4 +99,5 @@ class LocalMapWindow:
             size_m=np.concatenate([lmap.size_m, np.array([r[2] for _, r in recs])]),
             n_obs=np.concatenate([lmap.n_obs, np.array([r[3] for _, r in recs], dtype=int)]),
             kind=lmap.kind,
+            catalog_row=np.concatenate([lmap.anchored_rows, np.array([r[5] for _, r in recs], dtype=int)]),
         )

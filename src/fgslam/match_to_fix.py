@@ -17,7 +17,7 @@ from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.covariance import psd_part
 from reloc.geometry import wrap_angle
-from reloc.measurements import GlobalFix
+from reloc.measurements import CatalogAnchor, GlobalFix
 from reloc.procrustes import rotation_2d
 
 
@@ -345,7 +345,8 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
 
 def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: np.ndarray, catalog_xy: np.ndarray,
                   cfg: RelocalizerConfig, sigma_m: float | np.ndarray, t_recv: float, cov_scale: float = 1.0,
-                  catalog_rows: tuple[int, int] | None = None, source: str = "") -> GlobalFix:
+                  catalog_rows: tuple[int, int] | None = None, source: str = "",
+                  anchors: tuple[CatalogAnchor, ...] = ()) -> GlobalFix:
     """Planar fix (x, y, yaw) at ``est.t`` from two landmarks ``landmarks_xy`` (2, 2, estimated
     world) identified with catalog entries ``catalog_xy`` (2, 2): the rigid motion that puts the
     landmarks' midpoint on the entries' and their direction on theirs, applied to the estimate.
@@ -354,7 +355,8 @@ def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: 
     the entries' ``sigma_m`` per axis (one for both, or one each: :func:`catalog_sigma`) and
     each landmark's error relative to the rover
     (``relative_cov_xy`` (2, 2, 2), :func:`rover_relative_cov_xy`, never below ``sigma_floor_m``),
-    times ``inflation``^2 as a matched fix's: the heading is as good as the pair is long."""
+    times ``inflation``^2 as a matched fix's: the heading is as good as the pair is long.
+    ``anchors``: the two identifications, for a back-end that puts them on its landmarks."""
     L = np.asarray(landmarks_xy, float).reshape(2, 2)
     C = np.asarray(catalog_xy, float).reshape(2, 2)
     xy_est, yaw_est = np.asarray(est.position_m, float)[:2], float(est.yaw_rad)
@@ -382,7 +384,8 @@ def fix_from_pair(est: PoseEstimate, landmarks_xy: np.ndarray, relative_cov_xy: 
     return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(out[0]), y_m=float(out[1]),
                      yaw_rad=float(wrap_angle(yaw_est + out[2])), cov_xyyaw=0.5 * (cov + cov.T) * cov_scale,
                      n_inliers=2, rmse_m=0.0, correlation_scale=cov_scale,
-                     catalog_rows=() if catalog_rows is None else tuple(int(r) for r in catalog_rows), source=source)
+                     catalog_rows=() if catalog_rows is None else tuple(int(r) for r in catalog_rows), source=source,
+                     anchors=anchors)
 
 
 def catalog_box_of(catalog_xy: np.ndarray) -> tuple[float, float, float, float]:
@@ -410,7 +413,8 @@ def disc_box_area(center_xy, radius_m: float, box: tuple[float, float, float, fl
 
 def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy: np.ndarray,
                     catalog_xy: np.ndarray, cfg: RelocalizerConfig, sigma_m: float, t_recv: float,
-                    cov_scale: float = 1.0, catalog_row: int | None = None, source: str = "") -> GlobalFix:
+                    cov_scale: float = 1.0, catalog_row: int | None = None, source: str = "",
+                    anchors: tuple[CatalogAnchor, ...] = ()) -> GlobalFix:
     """Position fix at ``est.t`` from one landmark identified with a catalog entry: the rover
     moved by what puts the landmark on the entry, ``xy = xy_est + (catalog - landmark)``; the
     heading stays the estimate's with ``single_sigma_yaw_rad`` (no heading information).
@@ -421,7 +425,7 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     what the landmark holds beyond the rover is its own error, what the rover holds beyond the
     landmark its drift since it was last seen, :func:`rover_relative_cov_xy`; never below
     ``sigma_floor_m``), times ``inflation``^2 as a matched fix's (unmodelled errors of the rim's
-    centre on both sides)."""
+    centre on both sides). ``anchors``: the identification, for a back-end that puts it on its landmark."""
     rel = np.asarray(landmark_cov_xy, float) - np.asarray(est.cov[:2, :2], float)
     w, V = np.linalg.eigh(0.5 * (rel + rel.T))
     rel = (V * np.maximum(np.abs(w), cfg.sigma_floor_m ** 2)) @ V.T
@@ -431,4 +435,4 @@ def fix_from_single(est: PoseEstimate, landmark_xy: np.ndarray, landmark_cov_xy:
     xy = est.position_m[:2] + (np.asarray(catalog_xy, float) - np.asarray(landmark_xy, float))
     return GlobalFix(t_meas=est.t, t_recv=t_recv, x_m=float(xy[0]), y_m=float(xy[1]), yaw_rad=float(est.yaw_rad),
                      cov_xyyaw=cov * cov_scale, n_inliers=1, rmse_m=0.0, correlation_scale=cov_scale,
-                     catalog_rows=() if catalog_row is None else (int(catalog_row),), source=source)
+                     catalog_rows=() if catalog_row is None else (int(catalog_row),), source=source, anchors=anchors)

@@ -47,7 +47,7 @@ from fgslam.relocalizer_config import RelocalizerConfig, RelocalizerError
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.covariance import distance_correlation_scale
 from reloc.geometry import wrap_angle
-from reloc.measurements import GlobalFix, RockCatalog
+from reloc.measurements import CatalogAnchor, GlobalFix, RockCatalog
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +186,7 @@ class Relocalizer:
         self._last_xyyaw = est_xyyaw
         if self._fresh.stale(lmap):
             return FixAttempt(est.t, len(lmap), "stale map", 0.0, est_xyyaw=est_xyyaw)
+        live = lmap.ids  # the back-end's own landmarks (those of the window are not its variables)
         if self.window is not None:  # with the landmarks the back-end dropped on the recent path
             lmap = self.window.update(lmap, est.position_m)
         rel = self._relative_covs(lmap, est)
@@ -194,7 +195,7 @@ class Relocalizer:
             usable = np.linalg.eigvalsh(rel)[:, -1] <= (cfg.max_relative_sigmas * self._matcher_config().sigma_m) ** 2
         idx = select_local_map(lmap, est.position_m, cfg, self.min_size_m, usable)
         if idx.size < cfg.min_landmarks:
-            single = self._identify(lmap, idx, est, est_xyyaw, 0.0)
+            single = self._identify(lmap, idx, est, est_xyyaw, 0.0, live)
             return single or FixAttempt(est.t, int(idx.size), "too few landmarks", 0.0, est_xyyaw=est_xyyaw)
         local_xy = lmap.xyz_world_m[idx, :2]
         t0 = time.perf_counter()
@@ -215,7 +216,7 @@ class Relocalizer:
             result = self.matcher.match(local_xy, lmap.size_m[idx], prior)
         dt = time.perf_counter() - t0
         if result is None:
-            single = self._identify(lmap, idx, est, est_xyyaw, dt)
+            single = self._identify(lmap, idx, est, est_xyyaw, dt, live)
             return single or FixAttempt(est.t, int(idx.size), "no match", dt, est_xyyaw=est_xyyaw)
         if abs(float(result.scale) - 1.0) > cfg.max_scale_error:
             log.info("t=%.1f s: match rejected, scale %.3f", est.t, result.scale)
@@ -250,11 +251,14 @@ class Relocalizer:
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, L, W, est_xyyaw, bool(getattr(result, "from_guess", False)))
 
     def _identify(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
-                  dt_match: float) -> FixAttempt | None:
+                  dt_match: float, live: np.ndarray) -> FixAttempt | None:
         """A fix from two landmarks identified together (``RelocalizerConfig.pair_landmarks``),
         else a position fix from one identified alone (``single_landmark``), or None: off, lost,
-        or no landmark passes."""
+        or no landmark passes. Landmarks anchored on a catalog entry already are left out; with
+        ``anchor_landmarks`` the fix names its landmarks of ``live`` (the back-end's ids) and their
+        entries (:class:`reloc.measurements.CatalogAnchor`)."""
         cfg = self.config
+        idx = idx[lmap.anchored_rows[idx] < 0]  # their entry is on them: a fix would repeat it
         if not (cfg.single_landmark or cfg.pair_landmarks) or idx.size == 0:
             return None
         if is_lost(est, cfg.lost_sigma_m):
@@ -279,9 +283,10 @@ class Relocalizer:
             l_xy, c_xy = lmap.xyz_world_m[ids, :2], self.catalog.xy_m[rows]
             rel = rover_relative_cov_xy(lmap.cov_world_m2[ids, :2, :2], np.asarray(est.cov)[:2, :2])
             sigma_c = catalog_sigma(cfg, sigma_m, sizes[rows])
+            scale = self._correlation_scale(est.t, rows)
             fix = fix_from_pair(est, l_xy, rel, c_xy, cfg, sigma_c, t_recv=est.t + latency,
-                                cov_scale=self._correlation_scale(est.t, rows), catalog_rows=pair.rows,
-                                source=self.kinds[0])
+                                cov_scale=scale, catalog_rows=pair.rows, source=self.kinds[0],
+                                anchors=self._anchors(lmap.ids[ids], rows, sigma_c, scale, live))
             self._note_fix(est.t, rows)
             log.debug("t=%.1f s: pair %s fix, d2 %.2f / %.2f, false-alarm bound %.2e", est.t, self.kinds[0],
                       pair.d2, pair.d2_rel, pair.false_alarm)
@@ -291,14 +296,28 @@ class Relocalizer:
             return None
         l_xy, c_xy = lmap.xyz_world_m[hit.landmark, :2], self.catalog.xy_m[hit.row]
         sigma_c = float(catalog_sigma(cfg, sigma_m, sizes[hit.row]))
+        scale = self._correlation_scale(est.t, np.array([hit.row]))
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_c,
-                              t_recv=est.t + latency, cov_scale=self._correlation_scale(est.t, np.array([hit.row])),
-                              catalog_row=hit.row, source=self.kinds[0])
+                              t_recv=est.t + latency, cov_scale=scale, catalog_row=hit.row, source=self.kinds[0],
+                              anchors=self._anchors(lmap.ids[[hit.landmark]], np.array([hit.row]), sigma_c, scale, live))
         self._note_fix(est.t, np.array([hit.row]))
         log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
                   hit.false_alarm)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy[None, :], c_xy[None, :], est_xyyaw,
                           single=True, false_alarm=hit.false_alarm)
+
+    def _anchors(self, ids: np.ndarray, rows: np.ndarray, sigma_c, scale: float,
+                 live: np.ndarray) -> tuple[CatalogAnchor, ...]:
+        """The anchors of a fix identifying landmarks ``ids`` with catalog ``rows``: each entry at
+        its catalog position with ``inflation^2 x scale x sigma_c^2`` per axis (``sigma_c`` one or
+        one per entry, :func:`fgslam.match_to_fix.catalog_sigma`); none when ``anchor_landmarks``
+        is off or a landmark is not one of the back-end's (``live``)."""
+        cfg = self.config
+        if not cfg.anchor_landmarks or not np.isin(ids, live).all():
+            return ()
+        var = cfg.inflation**2 * scale * np.broadcast_to(np.asarray(sigma_c, float) ** 2, (len(rows),))
+        return tuple(CatalogAnchor(self.kinds[0], int(i), int(r), self.catalog.xy_m[r], v * np.eye(2))
+                     for i, r, v in zip(ids, rows, var))
 
     def _matcher_config(self):
         """The matcher's :class:`reloc.matcher.MatcherConfig` (its defaults for a given matcher

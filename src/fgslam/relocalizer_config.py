@@ -162,6 +162,13 @@ class RelocalizerConfig:
     # gave single fixes claiming 0.58 m and took iSAM2 from 0.33 to 1.37 m off on sparse-5km
     # (docs/craters.md)
     catalog_sigma_rel: NonNegative = 0.0
+    # A single or pair fix names its landmarks and catalog entries (GlobalFix.anchors), each entry
+    # with its catalog_sigma (times inflation^2 and the correlation factor), so that a back-end
+    # puts the entries on the landmarks, once, instead of the pose at every fix: n fixes on one
+    # entry otherwise add 1 + 1/2 + ... + 1/n fixes' information about the error they share. A
+    # landmark whose map says it is anchored already (LandmarkMap.catalog_row) is not identified
+    # again. Off for rocks (the yards' fixes are constellation matches), on for craters.
+    anchor_landmarks: bool = False
     matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
 
     def __post_init__(self) -> None:

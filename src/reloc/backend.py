@@ -67,6 +67,8 @@ class LandmarkMap:
     kind's name (:mod:`reloc.kinds`). ``cov_world_m2`` is where the landmark is in the world, the
     back-end's drift included (the EKF's marginal; the smoother's map uncertainty plus the pose's
     when the landmark was last seen), not its position relative to the rover.
+    ``catalog_row`` (N,) int: the catalog entry each landmark was anchored on
+    (:class:`reloc.measurements.CatalogAnchor`), -1 for none (None: no landmark anchored).
     """
 
     ids: np.ndarray
@@ -75,9 +77,17 @@ class LandmarkMap:
     size_m: np.ndarray
     n_obs: np.ndarray
     kind: str
+    catalog_row: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
+
+    @property
+    def anchored_rows(self) -> np.ndarray:
+        """(N,) int: :attr:`catalog_row`, -1 everywhere when it is None."""
+        if self.catalog_row is None:
+            return np.full(len(self), -1, dtype=int)
+        return np.asarray(self.catalog_row, dtype=int)
 
     @staticmethod
     def empty(kind: str) -> LandmarkMap:
@@ -171,7 +181,10 @@ class Backend(Protocol):
         kind at ``obs.t``; an observation of no registered kind is an error (never a fix)."""
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
-        """Apply a (possibly late) global planar fix at ``fix.t_meas``; gate it, never raise on a bad one."""
+        """Apply a (possibly late) global planar fix at ``fix.t_meas``; gate it, never raise on a bad one.
+        A back-end may apply the fix's ``anchors`` (:class:`reloc.measurements.CatalogAnchor`) on
+        its landmarks instead, when it holds every one of them, and then reports them in
+        :attr:`LandmarkMap.catalog_row`."""
 
     def expect_fix(self, t_meas: float) -> None:
         """A fix for ``t_meas`` (at or after the newest input) may arrive later. A back-end that

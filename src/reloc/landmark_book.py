@@ -29,12 +29,13 @@ class LandmarkBookConfig:
     confirm_window_s: Positive = 5.0  # ... within this many seconds of the first sighting
 
 
-_COLUMNS = ("ids", "t_first", "t_last", "n_obs", "size_sum_m", "confirmed", "kind")
+_COLUMNS = ("ids", "t_first", "t_last", "n_obs", "size_sum_m", "confirmed", "kind", "catalog_row")
 
 
 class LandmarkBook:
     """Per-landmark records (N,): ``ids``, ``t_first``, ``t_last``, ``n_obs``, ``size_sum_m``,
-    ``confirmed``, ``kind`` (the kind code, :func:`reloc.kinds.kind_code`)."""
+    ``confirmed``, ``kind`` (the kind code, :func:`reloc.kinds.kind_code`), ``catalog_row`` (the
+    catalog entry the landmark was anchored on, -1 for none)."""
 
     def __init__(self, config: LandmarkBookConfig | None = None) -> None:
         self.config = config or LandmarkBookConfig()
@@ -46,6 +47,7 @@ class LandmarkBook:
         self.size_sum_m = np.zeros(0)
         self.confirmed = np.zeros(0, dtype=bool)
         self.kind = np.zeros(0, dtype=np.int16)
+        self.catalog_row = np.zeros(0, dtype=np.int64)
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -78,6 +80,7 @@ class LandmarkBook:
         self.size_sum_m = np.concatenate([self.size_sum_m, n_obs * size_m])
         self.confirmed = np.concatenate([self.confirmed, np.full(k, self.config.confirm_n_obs <= n_obs)])
         self.kind = np.concatenate([self.kind, np.full(k, kind, dtype=np.int16)])
+        self.catalog_row = np.concatenate([self.catalog_row, np.full(k, -1, dtype=np.int64)])
         return new_ids
 
     def observe(self, rows: np.ndarray, t: float, size_m: np.ndarray) -> None:

@@ -195,6 +195,33 @@ class FixHeight:
 
 
 @dataclass(frozen=True, slots=True)
+class CatalogAnchor:
+    """A landmark of a back-end's map identified with an orbital catalog entry: landmark
+    ``landmark_id`` of kind ``kind`` (the back-end's id, :class:`reloc.backend.LandmarkMap`) lies
+    at the entry's ``xy_m`` (2,, world) with ``cov_xy`` (2, 2): the entry's own error only (the
+    rover's error relative to the landmark is the back-end's to know). ``catalog_row``: the entry."""
+
+    kind: str
+    landmark_id: int
+    catalog_row: int
+    xy_m: np.ndarray
+    cov_xy: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.kind, str) or not self.kind:
+            raise MeasurementError(f"CatalogAnchor.kind must be a kind's name, got {self.kind!r}")
+        object.__setattr__(self, "landmark_id", int(self.landmark_id))
+        object.__setattr__(self, "catalog_row", int(self.catalog_row))
+        if self.catalog_row < 0:
+            raise MeasurementError(f"CatalogAnchor.catalog_row must be >= 0, got {self.catalog_row}")
+        object.__setattr__(self, "xy_m", _array("CatalogAnchor.xy_m", np.reshape(self.xy_m, -1), (2,)))
+        cov = _array("CatalogAnchor.cov_xy", self.cov_xy, (2, 2))
+        if np.any(np.abs(cov - cov.T) > 1e-9 * (1.0 + np.abs(cov))) or np.linalg.eigvalsh(cov)[0] <= 0:
+            raise MeasurementError("CatalogAnchor.cov_xy must be symmetric positive definite")
+        object.__setattr__(self, "cov_xy", cov)
+
+
+@dataclass(frozen=True, slots=True)
 class GlobalFix:
     """A global pose fix of base_link in world, valid at ``t_meas``, delivered at ``t_recv``:
     planar (x, y, yaw), and with ``height`` (:class:`FixHeight`) also z.
@@ -209,6 +236,13 @@ class GlobalFix:
     drift from its map added after it, so ``cov_xyyaw = correlation_scale * C_match + C_rel``: a
     consumer with its own correlation model takes :meth:`recorrelated`. ``catalog_rows``: the
     catalog entries the match used (fixes that share none share no catalog error).
+
+    ``anchors``: where the fix came from landmarks identified one by one with catalog entries
+    (:class:`CatalogAnchor`), those identifications. A back-end that holds every anchor's
+    landmark as a variable may put the entries on the landmarks instead of the pose (each
+    entry's error then counted once, however many later fixes would have repeated it) and
+    :meth:`height_only` on the pose; otherwise it takes the fix as a pose. A fix whose pose is
+    changed must drop them (``anchors=()``).
     """
 
     t_meas: float
@@ -224,8 +258,13 @@ class GlobalFix:
     correlation_scale: float = 1.0
     cov_relative_xy: np.ndarray | None = None
     catalog_rows: tuple[int, ...] = ()  # the catalog entries the match used (empty: not known)
+    anchors: tuple[CatalogAnchor, ...] = ()
 
     def __post_init__(self) -> None:
+        anchors = tuple(self.anchors)
+        if not all(isinstance(a, CatalogAnchor) for a in anchors):
+            raise MeasurementError("GlobalFix.anchors must hold CatalogAnchor only")
+        object.__setattr__(self, "anchors", anchors)
         for name in ("t_meas", "t_recv", "x_m", "y_m", "yaw_rad", "rmse_m"):
             object.__setattr__(self, name, _time(f"GlobalFix.{name}", getattr(self, name)))
         if not isinstance(self.source, str):
@@ -282,6 +321,17 @@ class GlobalFix:
     def planar(self) -> GlobalFix:
         """This fix without its height."""
         return self if self.height is None else replace(self, height=None)
+
+    def height_only(self, planar_sigma_m: float = 1.0e3, yaw_sigma_rad: float = 1.0e2) -> GlobalFix | None:
+        """The fix's height alone (None without one), as a fix whose (x, y, yaw) say nothing
+        (``planar_sigma_m``, ``yaw_sigma_rad``, uncorrelated with z) and whose z keeps its
+        variance about the fix's own (x, y), the terrain read there: what a back-end applies
+        beside the fix's anchors, which hold its planar part."""
+        if self.height is None:
+            return None
+        cov = np.diag([planar_sigma_m**2, planar_sigma_m**2, yaw_sigma_rad**2])
+        return replace(self, cov_xyyaw=cov, cov_relative_xy=None, correlation_scale=1.0, anchors=(),
+                       height=FixHeight(self.height.z_m, self.height.var_m2, np.zeros(3)))
 
     def split_cov(self) -> tuple[np.ndarray, np.ndarray]:
         """(C_match, C_rel) (3, 3) each: the match's covariance before the producer's correlation

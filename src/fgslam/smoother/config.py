@@ -135,6 +135,13 @@ class FixConfig:
     retract_chi2: Positive = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)
     retract_chi2_with_height: Positive = 18.47  # ... for a fix with a height (4 dof, 0.999)
     max_age_s: Positive = 60.0  # odometry history kept to place late fixes
+    # A fix of landmarks identified one by one with catalog entries (GlobalFix.anchors): the
+    # entries as priors on the landmarks' (x, y) instead of a factor on the pose, so an entry's
+    # error is counted once however many fixes repeat it (a landmark not a variable of the
+    # solver: the fix as a pose). Gate: squared Mahalanobis distance above anchor_chi2_per_dof x
+    # its dof (2 per landmark; 6.91: 99.9 % for one) -> rejected; the distance gate per landmark.
+    anchors: bool = True
+    anchor_chi2_per_dof: Positive = 6.91
     extra_iterations: NonNegativeInt = 1  # extra iSAM2 updates after a fix (one Gauss-Newton step each)
     window_margin_s: NonNegative = 2.0  # fixed-lag: refuse fixes this close to the window edge
     # With a calibration variable (SmootherConfig.calibration), a fix's yaw sigma is taken as at

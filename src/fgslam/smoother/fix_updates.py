@@ -23,10 +23,71 @@ log = logging.getLogger("fgslam.smoother.isam2_backend")
 WINDOW_REASON = "outside"  # first word of the reason of a fix refused by the fixed-lag window
 
 
+ANCHOR_Z_SIGMA_M = 1.0e3  # an anchor's prior says nothing about the landmark's height
+
+
 class LateFixes:
     """``_apply_fix`` and the retraction of fixes (see module doc)."""
 
     def _apply_fix(self, fix: GlobalFix) -> FixOutcome:
+        if fix.anchors and self.config.fixes.anchors:
+            outcome = self._apply_anchors(fix)
+            if outcome is not None:  # the entries on the landmarks; the height (if any) on the pose
+                if outcome.accepted and fix.height is not None:
+                    self._apply_pose_fix(fix.height_only())
+                return outcome
+        return self._apply_pose_fix(fix)
+
+    def _apply_anchors(self, fix: GlobalFix) -> FixOutcome | None:
+        """Put ``fix``'s catalog entries on its landmarks (``FixConfig.anchors``): a prior on each
+        landmark's (x, y) with the entry's covariance (none on z), in one update, gated on the
+        squared Mahalanobis distance against the landmarks' marginals and on the distance gate.
+        None when a landmark is not a variable of the solver (the fix is then taken as a pose)."""
+        cfg = self.config.fixes
+        keys, layers = [], []
+        for a in fix.anchors:
+            layer = self.kinds.named(a.kind)
+            key = None if layer is None or not hasattr(layer, "anchor_key") else layer.anchor_key(a.landmark_id, self.solver)
+            if key is None:
+                return None
+            keys.append(key)
+            layers.append(layer)
+        if any(a.landmark_id in layer.anchored for a, layer in zip(fix.anchors, layers)):
+            return FixOutcome(fix, False, "anchored already: a landmark holds a catalog entry")
+        xyz = [np.asarray(self.solver.point(k), float) for k in keys]
+        nu = [a.xy_m - p[:2] for a, p in zip(fix.anchors, xyz)]
+        dist = max(float(np.hypot(*v)) for v in nu)
+        if dist > cfg.gate_distance_m:
+            return FixOutcome(fix, False, f"distance gate (anchor) {dist:.1f} m > {cfg.gate_distance_m:.1f} m")
+        d2 = sum(float(v @ np.linalg.solve(self.solver.marginal_cov(k)[:2, :2] + a.cov_xy, v))
+                 for v, k, a in zip(nu, keys, fix.anchors))
+        bound = cfg.anchor_chi2_per_dof * 2 * len(keys)
+        if not d2 <= bound:
+            return FixOutcome(fix, False, f"Mahalanobis gate (anchor) d2 {d2:.1f} > {bound:.1f}", d2)
+        graph = gtsam.NonlinearFactorGraph()
+        for a, k, p in zip(fix.anchors, keys, xyz):
+            cov = np.diag([0.0, 0.0, ANCHOR_Z_SIGMA_M**2])
+            cov[:2, :2] = a.cov_xy
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k),
+                                                   gtsam.noiseModel.Gaussian.Covariance(cov))
+            graph.add(gtsam.PriorFactorPoint3(k, gtsam.Point3(a.xy_m[0], a.xy_m[1], p[2]), noise))
+        snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
+        alive = set(self.solver._alive)
+        try:
+            self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
+            self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
+        except (SolverUpdateError, RuntimeError, ValueError) as exc:
+            self.solver.restore(snap, alive)
+            self.n_failed_updates += 1
+            return FixOutcome(fix, False, f"solver update failed: {exc}", d2)
+        for a, layer in zip(fix.anchors, layers):
+            layer.anchored[a.landmark_id] = a.catalog_row
+        self.n_anchor_fixes += 1
+        self.n_anchors += len(keys)
+        self._refresh_latest()
+        return FixOutcome(fix, True, "", d2)
+
+    def _apply_pose_fix(self, fix: GlobalFix) -> FixOutcome:
         cfg = self.config.fixes
         k = self.kfs.before(fix.t_meas)
         if k < 0:

@@ -88,6 +88,7 @@ class Isam2Smoother(LateFixes, Backend):
         self.n_predict = self.n_failed_updates = 0
         self.n_fix_ok = self.n_fix_rejected = 0
         self.n_heights_refused = 0  # fixes placed without their height (FixConfig.height_gate_chi2)
+        self.n_anchor_fixes = self.n_anchors = 0  # fixes applied as priors on their landmarks, and those landmarks
         self.fix_reject_reasons: dict[str, int] = {}  # rejected fixes by the reason's first word
         self._stamps: dict[int, float] = {}  # fixed-lag key timestamps (s)
         self._buf_graph = gtsam.NonlinearFactorGraph()
@@ -296,6 +297,7 @@ class Isam2Smoother(LateFixes, Backend):
                 "retracted_fixes": retracted,
                 "fix_reject_reasons": dict(self.fix_reject_reasons),
                 "n_heights_refused": self.n_heights_refused,
+                "n_anchor_fixes": self.n_anchor_fixes, "n_anchors": self.n_anchors,
                 # fixes whose keyframe had left (or was about to leave) the fixed-lag window
                 "n_fixes_older_than_window": self.fix_reject_reasons.get(WINDOW_REASON, 0),
                 "fixed_lag_s": self.config.fixed_lag_s,

@@ -21,7 +21,10 @@ built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibr
   ``pose_cov_at(t)`` (K,) -> (K, 3, 3) is the rover's position covariance at those times, to add
   to covariances relative to the map;
 - ``n_landmarks``, ``n_frames`` (frames used), ``stats()`` (dict of counters);
-- optionally ``config_class``, built from ``SmootherConfig.kinds[name]`` (:func:`kind_config`).
+- optionally ``config_class``, built from ``SmootherConfig.kinds[name]`` (:func:`kind_config`);
+- optionally ``anchor_key(lid, solver)`` (the landmark's key while it is a variable of the solver,
+  else None) and ``anchored`` (dict: landmark id -> catalog entry, reported in its map's
+  ``catalog_row``): the kind's landmarks take catalog anchors (``FixConfig.anchors``).
 
 The smoother keeps them in a :class:`SmootherKinds` (a :class:`reloc.kind_layers.KindLayers`).
 """

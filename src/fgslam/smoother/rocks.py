@@ -48,9 +48,18 @@ class RockLandmarks:
         self._last_frame_t = -np.inf
         self._buf_ids: set[int] = set()  # rocks with values or factors in the coming update
         self._seen_on_kf: set[int] = set()  # graph rocks that already have a factor on this keyframe
+        self.anchored: dict[int, int] = {}  # landmark id -> the catalog entry put on it (anchor_key)
 
     def key(self, lid: int) -> int:
         return gtsam.symbol(self.symbol, lid)
+
+    def anchor_key(self, lid: int, solver) -> int | None:
+        """The variable of landmark ``lid`` when it is one of the solver's (in the graph, not yet
+        marginalized), for a catalog anchor (:class:`reloc.measurements.CatalogAnchor`); None otherwise."""
+        rec = self.store.records.get(int(lid))
+        if rec is None or rec.status != ACTIVE or not solver.alive(self.key(rec.lid)):
+            return None
+        return self.key(rec.lid)
 
     def observe(self, obs: RockObservations, frame: KeyframeFrame) -> LandmarkUpdateReport:
         """Associate one rock frame; buffer factors on the current keyframe for the next update."""
@@ -147,6 +156,7 @@ class RockLandmarks:
             size_m=np.array([r.size_sum_m / max(r.n_obs, 1) for r in recs]),
             n_obs=np.array([r.n_obs for r in recs], dtype=int),
             kind=self.kind,
+            catalog_row=np.array([self.anchored.get(r.lid, -1) for r in recs], dtype=int) if self.anchored else None,
         )
 
     def stats(self) -> dict:
