@@ -39,8 +39,8 @@ class LateFixes:
         return self._apply_pose_fix(fix)
 
     def _apply_anchors(self, fix: GlobalFix) -> FixOutcome | None:
-        """Put ``fix``'s catalog entries on its landmarks (``FixConfig.anchors``): a prior on each
-        landmark's (x, y) with the entry's covariance (none on z), in one update, gated on the
+        """Put ``fix``'s catalog entries on its landmarks (``FixConfig.anchors``): a Gaussian prior
+        on each landmark's (x, y) with the entry's covariance (none on z), in one update, gated on the
         squared Mahalanobis distance against the landmarks' marginals and on the distance gate.
         None when a landmark is not a variable of the solver (the fix is then taken as a pose)."""
         cfg = self.config.fixes
@@ -68,8 +68,10 @@ class LateFixes:
         for a, k, p in zip(fix.anchors, keys, xyz):
             cov = np.diag([0.0, 0.0, ANCHOR_Z_SIGMA_M**2])
             cov[:2, :2] = a.cov_xy
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k),
-                                                   gtsam.noiseModel.Gaussian.Covariance(cov))
+            # Gaussian, not the fixes' Cauchy: the residual at the current estimate holds the
+            # landmark's own uncertainty (gated above), which the entry's covariance does not, and
+            # the kernel would take the drift it corrects for an outlier
+            noise = gtsam.noiseModel.Gaussian.Covariance(cov)
             graph.add(gtsam.PriorFactorPoint3(k, gtsam.Point3(a.xy_m[0], a.xy_m[1], p[2]), noise))
         snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
         alive = set(self.solver._alive)
