@@ -162,16 +162,25 @@ class RelocalizerConfig:
     # gave single fixes claiming 0.58 m and took iSAM2 from 0.33 to 1.37 m off on sparse-5km
     # (docs/craters.md)
     catalog_sigma_rel: NonNegative = 0.0
-    # A single or pair fix names its landmarks and catalog entries (GlobalFix.anchors), each entry
-    # with its catalog_sigma (times inflation^2 and the correlation factor), so that a back-end
-    # puts the entries on the landmarks, once, instead of the pose at every fix: n fixes on one
-    # entry otherwise add 1 + 1/2 + ... + 1/n fixes' information about the error they share. A
-    # landmark whose map says it is anchored already (LandmarkMap.catalog_row) is not identified
-    # again. Off for rocks (the yards' fixes are constellation matches), on for craters.
+    # A single or pair fix names its landmarks and catalog entries (GlobalFix.anchors), so that a
+    # back-end puts the entries on the landmarks, once, instead of the pose at every fix: n fixes
+    # on one entry otherwise add 1 + 1/2 + ... + 1/n fixes' information about the error they
+    # share. A landmark whose map says it is anchored already (LandmarkMap.catalog_row) is not
+    # identified again. Off for rocks (the yards' fixes are constellation matches), on for craters.
     anchor_landmarks: bool = False
+    # An anchor's covariance is the entry's own error alone, per axis hypot(anchor_sigma_m,
+    # catalog_sigma_rel x size) (times the correlation factor): the rover's side (its rim fit, its
+    # map) is the back-end's own, so neither the matcher's sigma_m nor inflation enters. 0.2 m:
+    # half a pixel of a 0.25-0.3 m orbital image and its georeference; the matcher's 0.3 m
+    # inflated 1.75x for a 3 m crater (0.61 m) was taken at 2.3x the entry's error and, counted
+    # once, left the smoother 1.6 m off on sparse-5km (docs/craters.md, "Catalog anchors")
+    anchor_sigma_m: NonNegative = 0.2
     matcher: dict = field(default_factory=dict)  # overrides of the matcher's config
 
     def __post_init__(self) -> None:
+        if self.anchor_landmarks and self.anchor_sigma_m == 0 and self.catalog_sigma_rel == 0:
+            raise RelocalizerError("relocalizer: anchor_landmarks needs anchor_sigma_m or catalog_sigma_rel above 0 "
+                                   "(an anchor's covariance would be zero)")
         if not self.matcher:
             return
         from reloc.config import config_from_dict

@@ -15,6 +15,7 @@ from fgslam.backends.registry import make_backend
 from fgslam.crater_relocalizer import CraterRelocalizer
 from fgslam.fault_fixes import WrongFixes
 from fgslam.inputs import truth_of
+from fgslam.relocalizer_config import RelocalizerError
 from fgslam.runner import run_backend
 from reloc.backend import LandmarkMap, PoseEstimate
 from reloc.errors import MeasurementError
@@ -188,9 +189,10 @@ def test_the_relocalizer_names_the_crater_and_its_entry():
     (a,) = att.fix.anchors
     assert (a.kind, a.landmark_id, a.catalog_row) == ("craters", 7, 0)
     np.testing.assert_allclose(a.xy_m, CRATER)
-    cfg = rl.config
-    sigma_c = np.hypot(cfg.matcher["sigma_m"], cfg.catalog_sigma_rel * 8.2)
-    np.testing.assert_allclose(a.cov_xy, np.eye(2) * cfg.inflation**2 * sigma_c**2, rtol=1e-9)
+    # the entry's own error only: 0.2 m and 0.06 of its 8.2 m in quadrature, neither the
+    # matcher's sigma (the rover's side too) nor the inflation
+    np.testing.assert_allclose(a.cov_xy, np.eye(2) * (0.2**2 + (0.06 * 8.2) ** 2), rtol=1e-9)
+    assert np.sqrt(a.cov_xy[0, 0]) < np.sqrt(att_off_cov(cat, lmap, est)[0, 0])
     # off: the same fix without anchors
     att_off = _reloc(cat, anchor_landmarks=False).attempt({"craters": lmap}, est)
     assert att_off.status == "fix" and att_off.fix.anchors == ()
@@ -198,6 +200,15 @@ def test_the_relocalizer_names_the_crater_and_its_entry():
     wrong = WrongFixes(_reloc(cat), WrongFixesConfig(fraction=1.0, offset_m=10.0), window=(0.0, 1e9), seed=0)
     watt = wrong.attempt({"craters": lmap}, est)
     assert watt.fix is not None and watt.fix.anchors == () and wrong.n_wrong == 1
+
+
+def att_off_cov(cat, lmap, est):
+    return _reloc(cat, anchor_landmarks=False).attempt({"craters": lmap}, est).fix.cov_xyyaw
+
+
+def test_anchor_settings_are_checked():
+    with pytest.raises(RelocalizerError, match="anchor_sigma_m"):
+        _reloc(_scene()[2], anchor_sigma_m=0.0, catalog_sigma_rel=0.0)
 
 
 def test_an_anchored_crater_is_not_identified_again():
