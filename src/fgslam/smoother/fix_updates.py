@@ -23,9 +23,6 @@ log = logging.getLogger("fgslam.smoother.isam2_backend")
 WINDOW_REASON = "outside"  # first word of the reason of a fix refused by the fixed-lag window
 
 
-ANCHOR_Z_SIGMA_M = 1.0e3  # an anchor's prior says nothing about the landmark's height
-
-
 class LateFixes:
     """``_apply_fix`` and the retraction of fixes (see module doc)."""
 
@@ -40,7 +37,7 @@ class LateFixes:
 
     def _apply_anchors(self, fix: GlobalFix) -> FixOutcome | None:
         """Put ``fix``'s catalog entries on its landmarks (``FixConfig.anchors``): a Gaussian prior
-        on each landmark's (x, y) with the entry's covariance (none on z), in one update, gated on the
+        on each landmark's (x, y) with the entry's covariance (nothing on z), in one update, gated on the
         squared Mahalanobis distance against the landmarks' marginals and on the distance gate.
         None when a landmark is not a variable of the solver (the fix is then taken as a pose)."""
         cfg = self.config.fixes
@@ -66,13 +63,15 @@ class LateFixes:
             return FixOutcome(fix, False, f"Mahalanobis gate (anchor) d2 {d2:.1f} > {bound:.1f}", d2)
         graph = gtsam.NonlinearFactorGraph()
         for a, k, p in zip(fix.anchors, keys, xyz):
-            cov = np.diag([0.0, 0.0, ANCHOR_Z_SIGMA_M**2])
-            cov[:2, :2] = a.cov_xy
             # Gaussian, not the fixes' Cauchy: the residual at the current estimate holds the
             # landmark's own uncertainty (gated above), which the entry's covariance does not, and
-            # the kernel would take the drift it corrects for an outlier
-            noise = gtsam.noiseModel.Gaussian.Covariance(cov)
-            graph.add(gtsam.PriorFactorPoint3(k, gtsam.Point3(a.xy_m[0], a.xy_m[1], p[2]), noise))
+            # the kernel would take the drift it corrects for an outlier. The square-root
+            # information has a zero row for z: the prior says nothing there (a 1 km sigma
+            # instead left the system ill-conditioned: 14 Cholesky failures on sparse-5km's 2.5 km)
+            R = np.zeros((3, 3))
+            R[:2, :2] = np.linalg.cholesky(np.linalg.inv(a.cov_xy)).T
+            graph.add(gtsam.PriorFactorPoint3(k, gtsam.Point3(a.xy_m[0], a.xy_m[1], p[2]),
+                                              gtsam.noiseModel.Gaussian.SqrtInformation(R)))
         snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
         alive = set(self.solver._alive)
         try:
