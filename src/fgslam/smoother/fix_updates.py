@@ -66,8 +66,8 @@ class LateFixes:
             # Gaussian, not the fixes' Cauchy: the residual at the current estimate holds the
             # landmark's own uncertainty (gated above), which the entry's covariance does not, and
             # the kernel would take the drift it corrects for an outlier. The square-root
-            # information has a zero row for z: the prior says nothing there (a 1 km sigma
-            # instead left the system ill-conditioned: 14 Cholesky failures on sparse-5km's 2.5 km)
+            # information has a zero row for z: the prior says nothing there (exactly, where a
+            # large sigma would add a tiny information of its own)
             R = np.zeros((3, 3))
             R[:2, :2] = np.linalg.cholesky(np.linalg.inv(a.cov_xy)).T
             graph.add(gtsam.PriorFactorPoint3(k, gtsam.Point3(a.xy_m[0], a.xy_m[1], p[2]),
