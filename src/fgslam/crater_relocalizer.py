@@ -26,8 +26,10 @@ overrides (``CompareConfig.kind_relocalizers["craters"]``). What differs from ro
   in :class:`fgslam.relocalizer_config.RelocalizerConfig`), or two together; an identified
   crater's catalog centre is taken as good as 0.06 of its diameter per axis (``catalog_sigma_rel``:
   the orbital detector's centre error), not the matcher's 0.3 m, which a big crater's is not;
-- such a fix names its craters and entries (``anchor_landmarks``): a back-end puts each entry on
-  its crater once, rather than the same entry's error on the pose at every later fix.
+- such a fix can name its craters and entries (``anchor_landmarks``, off by default), so that a
+  back-end puts each entry on its crater once rather than on the pose at every later fix: on
+  sparse-5km's first 2.5 km that left the smoother 1.6-2.7 m off against 0.97 m with the pose
+  fixes (docs/craters.md, "Catalog anchors, measured").
 
 Beside the rock relocalizer a run gets fixes from rocks, from craters or from both, whichever the
 place offers (each relocalizer labels its attempts with its kind).
@@ -46,7 +48,7 @@ CRATER_MATCHER = {
 CRATER_RELOCALIZER_DEFAULTS = RelocalizerConfig(
     period_s=10.0, min_landmarks=6, max_landmarks=80, max_radius_m=80.0, select="nearest", min_travel_m=1.0,
     fit_radius_m=40.0, sigma_floor_m=0.1, prior_min_radius_m=5.0, crop_margin_m=5.0, crop_snap_m=5.0,
-    single_landmark=True, track=True, catalog_sigma_rel=0.06, anchor_landmarks=True, matcher=CRATER_MATCHER,
+    single_landmark=True, track=True, catalog_sigma_rel=0.06, matcher=CRATER_MATCHER,
 )
 
 

@@ -166,7 +166,10 @@ class RelocalizerConfig:
     # back-end puts the entries on the landmarks, once, instead of the pose at every fix: n fixes
     # on one entry otherwise add 1 + 1/2 + ... + 1/n fixes' information about the error they
     # share. A landmark whose map says it is anchored already (LandmarkMap.catalog_row) is not
-    # identified again. Off for rocks (the yards' fixes are constellation matches), on for craters.
+    # identified again. Off by default: on sparse-5km's first 2.5 km, craters anchored left the
+    # smoother 1.6-2.7 m off where their pose fixes gave 0.97 m (docs/craters.md, "Catalog
+    # anchors, measured": once the rover's sigma passes ~0.5 m no crater alone passes the
+    # identification's chance bound again, and an anchor is never retracted).
     anchor_landmarks: bool = False
     # An anchor's covariance is the entry's own error alone, per axis hypot(anchor_sigma_m,
     # catalog_sigma_rel x size) (times the correlation factor): the rover's side (its rim fit, its

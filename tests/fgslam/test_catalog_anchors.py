@@ -183,7 +183,7 @@ def _reloc(cat, **kw):
 
 def test_the_relocalizer_names_the_crater_and_its_entry():
     est, lmap, cat = _scene()
-    rl = _reloc(cat)
+    rl = _reloc(cat, anchor_landmarks=True)
     att = rl.attempt({"craters": lmap}, est)
     assert att.status == "fix" and att.single
     (a,) = att.fix.anchors
@@ -193,22 +193,22 @@ def test_the_relocalizer_names_the_crater_and_its_entry():
     # matcher's sigma (the rover's side too) nor the inflation
     np.testing.assert_allclose(a.cov_xy, np.eye(2) * (0.2**2 + (0.06 * 8.2) ** 2), rtol=1e-9)
     assert np.sqrt(a.cov_xy[0, 0]) < np.sqrt(att_off_cov(cat, lmap, est)[0, 0])
-    # off: the same fix without anchors
-    att_off = _reloc(cat, anchor_landmarks=False).attempt({"craters": lmap}, est)
+    # off (the default): the same fix without anchors
+    att_off = _reloc(cat).attempt({"craters": lmap}, est)
     assert att_off.status == "fix" and att_off.fix.anchors == ()
     # a wrong fix (the wrong-fix experiment) moves the pose: it must not carry the right entries
-    wrong = WrongFixes(_reloc(cat), WrongFixesConfig(fraction=1.0, offset_m=10.0), window=(0.0, 1e9), seed=0)
+    wrong = WrongFixes(_reloc(cat, anchor_landmarks=True), WrongFixesConfig(fraction=1.0, offset_m=10.0), window=(0.0, 1e9), seed=0)
     watt = wrong.attempt({"craters": lmap}, est)
     assert watt.fix is not None and watt.fix.anchors == () and wrong.n_wrong == 1
 
 
 def att_off_cov(cat, lmap, est):
-    return _reloc(cat, anchor_landmarks=False).attempt({"craters": lmap}, est).fix.cov_xyyaw
+    return _reloc(cat).attempt({"craters": lmap}, est).fix.cov_xyyaw
 
 
 def test_anchor_settings_are_checked():
     with pytest.raises(RelocalizerError, match="anchor_sigma_m"):
-        _reloc(_scene()[2], anchor_sigma_m=0.0, catalog_sigma_rel=0.0)
+        _reloc(_scene()[2], anchor_landmarks=True, anchor_sigma_m=0.0, catalog_sigma_rel=0.0)
 
 
 def test_an_anchored_crater_is_not_identified_again():
