@@ -78,10 +78,6 @@ class FixGateConfig:
     correlation_length_m: Positive = 15.0  # the fixes' error correlation measured on rocky-1km (docs/app.md)
     bias_sources: tuple[str, ...] = ("rocks", "craters")
     bias_share: Annotated[float, Interval(gt=0, lt=1)] = 0.9
-    # Recovery of an overconfident filter: when the Mahalanobis gate has rejected consensus_n
-    # fixes within consensus_window_s whose innovations agree (every xy innovation within
-    # consensus_tol_m of their mean, yaw within consensus_tol_deg), the filter, not the fixes, is
-    # wrong: the pose covariance is inflated by the innovation and the fix applied. 0 disables.
     # A fix of landmarks identified one by one with catalog entries (GlobalFix.anchors): the
     # entries put on the landmarks' (x, y) instead of a pose update, so an entry's error is counted
     # once however many fixes repeat it (a landmark that left the state: the fix as a pose). Its
@@ -89,6 +85,10 @@ class FixGateConfig:
     # 6.91: 99.9 %; 4 dof, 4.62 per dof is 99.9 %, so a pair's gate is a little looser).
     anchors: bool = True
     anchor_chi2_per_dof: Positive = 6.91
+    # Recovery of an overconfident filter: when the Mahalanobis gate has rejected consensus_n
+    # fixes within consensus_window_s whose innovations agree (every xy innovation within
+    # consensus_tol_m of their mean, yaw within consensus_tol_deg), the filter, not the fixes, is
+    # wrong: the pose covariance is inflated by the innovation and the fix applied. 0 disables.
     consensus_n: NonNegativeInt = 3
     consensus_window_s: Positive = 30.0
     consensus_tol_m: Positive = 0.3

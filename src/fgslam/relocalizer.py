@@ -286,7 +286,7 @@ class Relocalizer:
             scale = self._correlation_scale(est.t, rows)
             fix = fix_from_pair(est, l_xy, rel, c_xy, cfg, sigma_c, t_recv=est.t + latency,
                                 cov_scale=scale, catalog_rows=pair.rows, source=self.kinds[0],
-                                anchors=self._anchors(lmap.ids[ids], rows, scale, live))
+                                anchors=self._anchors(lmap.ids[ids], rows, sizes[rows], scale, live))
             self._note_fix(est.t, rows)
             log.debug("t=%.1f s: pair %s fix, d2 %.2f / %.2f, false-alarm bound %.2e", est.t, self.kinds[0],
                       pair.d2, pair.d2_rel, pair.false_alarm)
@@ -299,24 +299,26 @@ class Relocalizer:
         scale = self._correlation_scale(est.t, np.array([hit.row]))
         fix = fix_from_single(est, l_xy, lmap.cov_world_m2[hit.landmark, :2, :2], c_xy, cfg, sigma_c,
                               t_recv=est.t + latency, cov_scale=scale, catalog_row=hit.row, source=self.kinds[0],
-                              anchors=self._anchors(lmap.ids[[hit.landmark]], np.array([hit.row]), scale, live))
+                              anchors=self._anchors(lmap.ids[[hit.landmark]], np.array([hit.row]), sizes[[hit.row]], scale, live))
         self._note_fix(est.t, np.array([hit.row]))
         log.debug("t=%.1f s: single %s fix, d2 %.2f, false-alarm bound %.2e", est.t, self.kinds[0], hit.d2,
                   hit.false_alarm)
         return FixAttempt(est.t, int(idx.size), "fix", dt, fix, l_xy[None, :], c_xy[None, :], est_xyyaw,
                           single=True, false_alarm=hit.false_alarm)
 
-    def _anchors(self, ids: np.ndarray, rows: np.ndarray, scale: float, live: np.ndarray) -> tuple[CatalogAnchor, ...]:
-        """The anchors of a fix identifying landmarks ``ids`` with catalog ``rows``: each entry at
-        its catalog position with its own error, ``scale x catalog_sigma(anchor_sigma_m, size)^2``
+    def _anchors(self, ids: np.ndarray, rows: np.ndarray, sizes: np.ndarray, scale: float,
+                 live: np.ndarray) -> tuple[CatalogAnchor, ...]:
+        """The anchors of a fix identifying landmarks ``ids`` with catalog ``rows`` (their sizes
+        ``sizes``): each entry at its catalog position with its own error, ``scale x
+        catalog_sigma(anchor_sigma_m, size)^2``
         per axis (:func:`fgslam.match_to_fix.catalog_sigma`); none when ``anchor_landmarks`` is
         off or a landmark is not one of the back-end's (``live``)."""
         cfg = self.config
         if not cfg.anchor_landmarks or not np.isin(ids, live).all():
             return ()
-        var = scale * catalog_sigma(cfg, cfg.anchor_sigma_m, np.asarray(self.catalog.size_m, float)[rows]) ** 2
+        var = scale * catalog_sigma(cfg, cfg.anchor_sigma_m, sizes) ** 2
         return tuple(CatalogAnchor(self.kinds[0], int(i), int(r), self.catalog.xy_m[r], v * np.eye(2))
-                     for i, r, v in zip(ids, rows, np.atleast_1d(var)))
+                     for i, r, v in zip(ids, rows, var))
 
     def _matcher_config(self):
         """The matcher's :class:`reloc.matcher.MatcherConfig` (its defaults for a given matcher

@@ -72,15 +72,9 @@ class LateFixes:
             R[:2, :2] = np.linalg.cholesky(np.linalg.inv(a.cov_xy)).T
             graph.add(gtsam.PriorFactorPoint3(k, gtsam.Point3(a.xy_m[0], a.xy_m[1], p[2]),
                                               gtsam.noiseModel.Gaussian.SqrtInformation(R)))
-        snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
-        alive = set(self.solver._alive)
-        try:
-            self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
-            self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
-        except (SolverUpdateError, RuntimeError, ValueError) as exc:
-            self.solver.restore(snap, alive)
-            self.n_failed_updates += 1
-            return FixOutcome(fix, False, f"solver update failed: {exc}", d2)
+        idx, failure = self._fix_update(graph)
+        if idx is None:
+            return FixOutcome(fix, False, failure, d2)
         for a, layer in zip(fix.anchors, layers):
             layer.anchored[a.landmark_id] = a.catalog_row
         self.n_anchor_fixes += 1
@@ -124,17 +118,11 @@ class LateFixes:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
         if d2 > cfg.gate_chi2:
             return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {cfg.gate_chi2:.1f}", d2)
-        snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
-        alive = set(self.solver._alive)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
-        try:
-            idx = self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
-            self.solver.extra_iterations(cfg.extra_iterations, self._latest_keys())
-        except (SolverUpdateError, RuntimeError, ValueError) as exc:
-            self.solver.restore(snap, alive)
-            self.n_failed_updates += 1
-            return FixOutcome(fix, False, f"solver update failed: {exc}", d2)
+        idx, failure = self._fix_update(graph)
+        if idx is None:
+            return FixOutcome(fix, False, failure, d2)
         rec = FixRecord(applied, k, X(k), T_rel, cov_res, idx[0])
         self.n_heights_refused += applied is not fix
         self.fixes.append(rec)
@@ -143,6 +131,21 @@ class LateFixes:
         if not rec.active:
             return FixOutcome(fix, False, rec.retracted_reason, d2)
         return FixOutcome(fix, True, "", d2)
+
+    def _fix_update(self, graph: gtsam.NonlinearFactorGraph) -> tuple[list[int] | None, str]:
+        """``graph`` (a fix's or anchors' factors) in one update with the newest keyframe last, and
+        ``extra_iterations``: the new factors' indices, or None and the reason when the solver
+        failed (its state then restored)."""
+        snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
+        alive = set(self.solver._alive)
+        try:
+            idx = self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
+            self.solver.extra_iterations(self.config.fixes.extra_iterations, self._latest_keys())
+        except (SolverUpdateError, RuntimeError, ValueError) as exc:
+            self.solver.restore(snap, alive)
+            self.n_failed_updates += 1
+            return None, f"solver update failed: {exc}"
+        return idx, ""
 
     def _retract_outliers(self) -> None:
         """Remove, worst first (by residual over bound), fixes whose residual stays above
