@@ -281,7 +281,8 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
                   catalog_size: np.ndarray, tree, cfg: RelocalizerConfig, sigma_m: float,
                   size_ratio_max: float | None, catalog_box: tuple[float, float, float, float] | None = None,
                   ) -> PairIdentification | None:
-    """Two landmarks among ``idx`` (within ``cfg.single_radius_m`` of ``xy_rover``) that two
+    """Two landmarks among ``idx`` (within ``cfg.pair_radius_m`` of ``xy_rover``, or
+    ``cfg.single_radius_m`` where that is None) that two
     catalog entries explain together (``RelocalizerConfig.pair_landmarks``); the pair with the
     smallest false-alarm bound, or None.
 
@@ -297,7 +298,8 @@ def identify_pair(lmap: LandmarkMap, idx: np.ndarray, xy_rover: np.ndarray, cata
     one rock of a sparse yard is not identifiable alone (its own gate holds the rover's drift),
     the separation's gate is a few decimetres wide."""
     box = catalog_box_of(catalog_xy) if catalog_box is None else catalog_box
-    near_rover = _within(lmap, idx, xy_rover, cfg.single_radius_m)
+    radius_m = cfg.single_radius_m if cfg.pair_radius_m is None else cfg.pair_radius_m
+    near_rover = _within(lmap, idx, xy_rover, radius_m)
     gates: dict[int, _Gate] = {}
     for i in near_rover:
         gate = _own_gate(lmap, i, catalog_xy, catalog_size, tree, cfg, sigma_m, size_ratio_max)

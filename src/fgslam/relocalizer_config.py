@@ -149,6 +149,11 @@ class RelocalizerConfig:
     # long). ERC MY2021: 0 fixes without it (docs/app.md)
     pair_landmarks: bool = True
     single_radius_m: Positive = 25.0
+    # The two of a pair are looked for within pair_radius_m of the rover (None: single_radius_m).
+    # Their separation's gate does not widen with the rover's drift, and the fix's covariance
+    # carries the lever arm from the pair to the rover (fix_from_pair), so a pair may lie farther
+    # than one landmark alone: craters tens of metres apart (sparse-5km) rarely lie two within 25 m
+    pair_radius_m: Positive | None = None
     single_gate_chi2: Positive = 13.82  # 99.9 % of a 2-dof chi-square
     single_max_false_alarm: Annotated[float, Interval(gt=0, lt=1)] = 1e-3
     single_density_radius_m: Positive = 200.0

@@ -155,3 +155,43 @@ def test_the_pair_fix_takes_each_entrys_own_sigma():
 
     assert 2.6 < mean_nees(sig) < 3.4
     assert mean_nees(float(sig[0])) > 5.0
+
+
+def test_a_pair_beyond_one_landmarks_radius_is_looked_for_within_pair_radius():
+    """``pair_radius_m``: with a single radius of 2 m (the rocks lie 2.8 m and 6.8 m from the
+    rover) no pair is looked for by default; within a pair radius of 10 m the pair gives the
+    fix it gives at the default radius."""
+    est, lmap = _scene()
+    cat = _catalog()
+    near = Relocalizer(cat, _cfg(single_radius_m=2.0)).attempt({"rocks": lmap}, est)
+    assert near.status == "too few landmarks"
+    far = Relocalizer(cat, _cfg(single_radius_m=2.0, pair_radius_m=10.0)).attempt({"rocks": lmap}, est)
+    usual = Relocalizer(cat, _cfg()).attempt({"rocks": lmap}, est)
+    assert far.status == usual.status == "fix" and far.fix.catalog_rows == (0, 1)
+    assert far.fix.x_m == pytest.approx(usual.fix.x_m) and far.fix.y_m == pytest.approx(usual.fix.y_m)
+    np.testing.assert_allclose(far.fix.cov_xyyaw, usual.fix.cov_xyyaw)
+    with pytest.raises(Exception, match="pair_radius_m"):
+        _cfg(pair_radius_m=0.0)
+
+
+def test_a_far_pairs_fix_carries_its_lever_arm():
+    """Two craters 20 m apart, 60 m from the rover: the pair's heading error moves the rover by
+    60 m x that, and the fix's covariance says so (mean NEES 3 over 400 draws, inflation taken
+    out), and its position sigma is the lever arm's metre and more."""
+    rng = np.random.default_rng(13)
+    est, _ = _scene()
+    cfg = _cfg()
+    pair = ROVER + np.array([[55.0, 20.0], [62.0, 38.8]])
+    rel = np.tile(np.eye(2) * 0.1**2, (2, 1, 1))
+    nees, pos_sigma = [], []
+    for _ in range(400):
+        L = _to_estimate(pair) + rng.normal(0.0, 0.1, (2, 2))
+        C = pair + rng.normal(0.0, 0.3, (2, 2))
+        fix = fix_from_pair(est, L, rel, C, cfg, 0.3, t_recv=est.t)
+        e = np.array([fix.x_m - ROVER[0], fix.y_m - ROVER[1], np.angle(np.exp(1j * (fix.yaw_rad - YAW)))])
+        cov = fix.cov_xyyaw / cfg.inflation**2
+        nees.append(e @ np.linalg.solve(cov, e))
+        pos_sigma.append(np.sqrt(np.trace(cov[:2, :2]) / 2))
+    assert 2.6 < np.mean(nees) < 3.4
+    # 60 m x the heading's sigma (sqrt(2 (0.1^2 + 0.3^2)) / 20 m = 0.022 rad) is ~1.3 m
+    assert 1.0 < np.median(pos_sigma) < 2.0
