@@ -383,7 +383,7 @@ def test_consistency_nees_and_3sigma_envelope(seed):
 
 @pytest.mark.slow
 def test_ten_percent_wrong_fixes_raise_ate_by_less_than_ten_percent():
-    run = simulate_synthetic(SyntheticConfig(seed=7, duration_s=400.0, slip_sigma=0.1, gyro_bias_radps=5e-4))
+    run = simulate_synthetic(SyntheticConfig(seed=7, duration_s=300.0, slip_sigma=0.1, gyro_bias_radps=5e-4))
     ates = {}
     for name, frac in (("good", 0.0), ("wrong", 0.1)):
         fx = synthetic_fixes(run, np.random.default_rng(3), wrong_fraction=frac)
