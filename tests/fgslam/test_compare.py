@@ -114,7 +114,7 @@ def test_cli_sim_run_compare_end_to_end(tmp_path):
     from rerun.chunk import RrdReader
 
     sim_dir = tmp_path / "sim"
-    r = _cli("sim", "--world", "my2022", "--seed", "3", "--distance-m", "6", "--out", str(sim_dir))
+    r = _cli("sim", "--world", "my2022", "--seed", "3", "--distance-m", "3", "--out", str(sim_dir))
     assert r.returncode == 0, r.stderr[-3000:]
     out = tmp_path / "run"
     r = _cli("run", str(sim_dir), "--backend", "isam2", "--out", str(out), "--rrd", str(out / "run.rrd"))
