@@ -22,17 +22,23 @@ class CalibrationConfig:
     rotation's effect by ~2 mm)."""
 
     roll_pitch_sigma_deg: NonNegative = 0.0  # about base_link x and y
+    # about base_link x alone, where it differs from the pitch's (None: roll_pitch_sigma_deg). A
+    # mast camera tilted down turns a roll about its optical axis into a roll and a yaw of the
+    # base; with the yaw held, a free roll let the landmarks turn the smoother's heading where
+    # they are few (sparse-5km, docs/smoother.md)
+    roll_sigma_deg: NonNegative | None = None
     yaw_sigma_deg: NonNegative = 0.0  # about base_link z
     scale_sigma: NonNegative = 0.0
 
     @property
     def enabled(self) -> bool:
-        return self.roll_pitch_sigma_deg > 0 or self.yaw_sigma_deg > 0 or self.scale_sigma > 0
+        return bool(np.any(self.prior_sigmas() > 0))
 
     def prior_sigmas(self) -> np.ndarray:
         """(4,): rotation about x, y, z (rad) and scale."""
-        rp, yaw = math.radians(self.roll_pitch_sigma_deg), math.radians(self.yaw_sigma_deg)
-        return np.array([rp, rp, yaw, self.scale_sigma])
+        roll = self.roll_pitch_sigma_deg if self.roll_sigma_deg is None else self.roll_sigma_deg
+        return np.array([math.radians(roll), math.radians(self.roll_pitch_sigma_deg), math.radians(self.yaw_sigma_deg),
+                         self.scale_sigma])
 
 
 def calibration_report(rotvec_rad: np.ndarray, scale: float, rot_sigma_rad: np.ndarray, scale_sigma: float) -> dict:
