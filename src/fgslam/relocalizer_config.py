@@ -152,7 +152,8 @@ class RelocalizerConfig:
     # The two of a pair are looked for within pair_radius_m of the rover (None: single_radius_m).
     # Their separation's gate does not widen with the rover's drift, and the fix's covariance
     # carries the lever arm from the pair to the rover (fix_from_pair), so a pair may lie farther
-    # than one landmark alone: craters tens of metres apart (sparse-5km) rarely lie two within 25 m
+    # than one landmark alone: craters tens of metres apart (sparse-5km) rarely lie two within 25 m.
+    # 80 m for craters changed nothing on sparse-5km seed 1 (docs/craters.md): off by default
     pair_radius_m: Positive | None = None
     single_gate_chi2: Positive = 13.82  # 99.9 % of a 2-dof chi-square
     single_max_false_alarm: Annotated[float, Interval(gt=0, lt=1)] = 1e-3
