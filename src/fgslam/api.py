@@ -56,25 +56,20 @@ def run_one(inputs, backend: str, reloc: bool, cfg, topics: dict | None = None, 
     (:class:`fgslam.inputs.RunInputs`) with the :class:`fgslam.compare.CompareConfig` ``cfg``.
     ``live(key, gt)`` -> a :class:`fgslam.runner.RunObserver` told of the run as it goes (a live
     viewer; its ``finish(result)``, if it has one, is called with the result)."""
-    from fgslam.backends.registry import backend_config_dict, make_backend
-    from fgslam.compare import relocalizer_set, run_key, run_metrics
-    from fgslam.fix_sources import NoFixes, OnlineFixes
-    from fgslam.inputs import check_stream
-    from fgslam.long_traverse import backend_overrides_for, evaluation_truth, runner_config_for
-    from fgslam.runner import run_backend
+    from fgslam.backends.registry import backend_config_dict
+    from fgslam.compare import run_key, run_metrics
+    from fgslam.fix_sources import OnlineFixes
+    from fgslam.run_setup import RunSetup
     from reloc.config import config_to_dict
 
-    gt, span = evaluation_truth(inputs)
-    runner_cfg = runner_config_for(check_stream(inputs, cfg.runner), span, cfg.long_traverse)
-    be = make_backend(backend, inputs.initial,  # bounded back-ends on a long traverse (fgslam.long_traverse)
-                      backend_overrides_for(backend, cfg.backend_overrides.get(backend), span, cfg.long_traverse))
-    relocs = relocalizer_set(inputs, cfg) if reloc else []
-    fixes = OnlineFixes(relocs) if relocs else NoFixes()
+    setup = RunSetup.of(inputs, cfg)  # bounded back-ends on a long traverse (fgslam.long_traverse)
+    gt, runner_cfg = setup.gt, setup.runner
+    be = setup.backend(backend)
+    relocs = setup.relocalizers() if reloc else []
+    fixes = OnlineFixes(relocs) if relocs else None
     key = run_key(backend, reloc)
     observer = live(key, gt) if live is not None else None
-    res = run_backend(be, inputs.measurements, fixes, config=runner_cfg,
-                      on_progress=on_progress(key) if on_progress is not None else None, observer=observer,
-                      keep_truth=False)
+    res = setup.run(be, fixes, on_progress=on_progress(key) if on_progress is not None else None, observer=observer)
     if observer is not None and hasattr(observer, "finish"):
         observer.finish(res)
     met = run_metrics(res, gt, res.attempts, cfg.rpe_delta_m)
@@ -116,12 +111,15 @@ def run(directory: str | Path | None = None, *, bag: str | Path | None = None, c
         topics: dict[str, str] | None = None, start=None) -> RunOutcome:
     """``fgslam run``: ``backend`` over a ``fgslam sim`` directory or a ``bag`` + ``catalog``;
     ``topics`` maps roles to the bag's topics, ``start`` a :class:`fgslam.inputs.StartSpec`; files
-    written into ``out`` when given."""
-    from fgslam.cli.cmd_run import load_inputs, topic_map
+    written into ``out`` when given. Without ``config`` a directory's ``backend.yaml`` is used
+    when it has one, as the command does."""
+    from fgslam.cli.cmd_run import load_inputs, sim_dir_config, topic_map
     from fgslam.inputs import bag_topics
     from fgslam.io.outdir import OutputDir
     from fgslam.outputs import write_run_outputs
 
+    if config is None and directory is not None:  # the directory's backend.yaml, as `fgslam run DIR`
+        config = sim_dir_config(Path(directory), None)
     cfg = _compare_config(config)
     mapping = topic_map(cfg.topics, [f"{k}={v}" for k, v in (topics or {}).items()])
     inputs = load_inputs(Path(directory) if directory is not None else None, Path(bag) if bag else None,
@@ -138,14 +136,18 @@ def run(directory: str | Path | None = None, *, bag: str | Path | None = None, c
 def compare(directories: list[str | Path], *, out: str | Path | None = None, config=None,
             rrd: bool = True) -> list[dict]:
     """``fgslam compare``: EKF and iSAM2, with and without the same fixes, on each ``fgslam sim``
-    directory; returns each input's metrics (as results.json's ``worlds``), files into ``out``."""
+    directory; returns each input's metrics (as results.json's ``worlds``), files into ``out``.
+    Without ``config`` the directories' common ``backend.yaml`` is used, as the command does."""
     import dataclasses
 
+    from fgslam.cli.cmd_run import compare_dirs_config
     from fgslam.compare import compare_world
     from fgslam.inputs import bag_topics, check_stream, load_sim_dir
     from fgslam.io.outdir import OutputDir
     from fgslam.outputs import write_comparison
 
+    if config is None:  # the directories' backend.yaml, as `fgslam compare DIR...`
+        config = compare_dirs_config([Path(d) for d in directories], None)
     cfg = _compare_config(config)
     topics = bag_topics(cfg.topics)
     inputs_list = [load_sim_dir(Path(d), topics=topics, images=cfg.images) for d in directories]

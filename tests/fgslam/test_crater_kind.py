@@ -266,3 +266,30 @@ def test_bench_craters_measures_a_directory_and_refuses_bad_arguments(tmp_path, 
     assert cr["attempts"] >= 3 and cr["with_min_catalogued"] >= 2 and cr["succeeded"] == cr["with_min_catalogued"]
     assert res["craters alone"]["fixes"]["craters"]["wrong"] == 0
     assert res["craters alone"]["ate_rmse_m"] < res["no fixes"]["ate_rmse_m"] + 0.05
+
+
+def test_bench_craters_runs_each_pass_as_fgslam_run_does_with_the_directory_config(tmp_path):
+    """The bench's passes take the directory's backend.yaml whole (relocalizer settings included):
+    its rocks + craters pass is `fgslam run DIR` to the digit, and a setting there changes it."""
+    import fgslam
+    from fgslam.bench.craters import CraterBenchConfig, bench_directory
+    from fgslam.io.catalog_csv import write_catalog_csv
+    from sim.bag_writer import write_bag
+
+    synth = make_stream(seed=8, duration_s=60.0, gyro_bias_radps=0.001, craters=True)
+    d = tmp_path / "d"
+    write_bag(d / "bag", synth.measurements)
+    write_catalog_csv(d / "catalog.csv", synth.catalogs["rocks"])
+    write_catalog_csv(d / "craters.csv", synth.catalogs["craters"])
+    plain = fgslam.run(d, backend="ekf")
+    (d / "backend.yaml").write_text("kind_relocalizers:\n  craters: {inflation: 5.0, delay_s: 5.0}\n"
+                                    "relocalizer: {inflation: 5.0}\n")
+    run = fgslam.run(d, backend="ekf")
+    bench = bench_directory(d, CraterBenchConfig(backend="ekf", passes=("rocks + craters",)))["passes"]["rocks + craters"]
+    ate_run = run.metrics["ate"]["rmse"]
+    assert abs(ate_run - plain.metrics["ate"]["rmse"]) > 1e-4  # the settings are felt
+    assert bench["ate_rmse_m"] == pytest.approx(ate_run, rel=1e-9)
+    for source in ("rocks", "craters"):
+        made = [a for a in run.result.attempts if a.source == source]
+        assert bench["fixes"][source]["attempts"] == len(made)
+        assert bench["fixes"][source]["fixes"] == sum(1 for a in made if a.fix is not None)

@@ -4,8 +4,8 @@ together over a ``fgslam sim`` directory's stream, without fixes.
 SLAM without fixes cannot observe the world's position and heading, so an honest back-end's
 covariance grows with the error; one that stays small while the error grows is what later keeps
 fixes from pulling (docs/ekf.md, "Consistency"). The back-end runs with the settings ``fgslam
-run`` gives it (the directory's ``backend.yaml`` overrides, the long-traverse defaults, rocks
-only unless ``--craters``), over the first ``--duration-s`` seconds, and every ``--bin-s``
+run DIR`` gives it (:class:`fgslam.run_setup.RunSetup`: the directory's ``backend.yaml``, the
+long-traverse settings; rocks only unless ``--craters``), over the first ``--duration-s`` seconds, and every ``--bin-s``
 seconds of stream the table gives the distance driven, the RMS planar error and the mean planar
 sigma, the height error and sigma and the yaw error and sigma at the bin's end, and the mean
 position and yaw NEES of the bin.
@@ -46,24 +46,18 @@ def drift_table(directory: Path, backend: str, duration_s: float, bin_s: float =
                 craters: bool = False, sets: tuple[str, ...] = ()) -> dict:
     """The back-end over the first ``duration_s`` s of ``directory`` (see module doc): JSON-ready."""
     from fgslam import metrics as M
-    from fgslam.backends.registry import make_backend
-    from fgslam.bench.sim_dir import directory_overrides, first_seconds
-    from fgslam.inputs import load_sim_dir, truth_of
-    from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for, run_span_s
-    from fgslam.runner import run_backend
+    from fgslam.run_setup import RunSetup
 
-    inputs = load_sim_dir(directory)
-    gt = truth_of(inputs)
+    setup = RunSetup.of_directory(directory, None, duration_s)
+    gt = setup.gt
     if gt is None or not len(gt):
         raise SystemExit(f"{directory}: no ground truth in the bag")
-    over = dict(directory_overrides(directory, backend, craters))
+    extra: dict = {} if craters else {"kinds": {"craters": {"use": False}}}
     for a in sets:
-        _set(over, a)
-    over = backend_overrides_for(backend, over, run_span_s(gt, inputs.measurements, duration_s),
-                                 LongTraverseConfig())
-    be = make_backend(backend, inputs.initial, over)
+        _set(extra, a)
+    be = setup.backend(backend, extra)
     t0 = time.perf_counter()
-    res = run_backend(be, first_seconds(inputs.measurements, duration_s))
+    res = setup.run(be)
     wall = time.perf_counter() - t0
     cons, ser = M.consistency(res.online, gt)
     t = ser["t"] - ser["t"][0]
@@ -87,7 +81,7 @@ def drift_table(directory: Path, backend: str, duration_s: float, bin_s: float =
             "nees_yaw": round(float(np.mean(ser["nees_yaw"][m])), 2),
         })
     return {"directory": str(directory), "backend": backend, "duration_s": duration_s, "craters": craters,
-            "overrides": over, "ate_m": M.ate(res.final, gt).rmse, "wall_s": round(wall, 1),
+            "overrides": setup.overrides(backend, extra), "ate_m": M.ate(res.final, gt).rmse, "wall_s": round(wall, 1),
             "consistency": cons.to_dict(), "bins": rows, "calibration": res.stats.extra.get("calibration")}
 
 

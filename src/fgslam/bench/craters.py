@@ -1,7 +1,9 @@
 """Craters in the loop, measured on ``fgslam sim`` directories of the kilometre presets.
 
-For each directory, passes of one back-end (iSAM2 by default) over the same bag, with the
-directory's ``backend.yaml`` calibration settings:
+For each directory, passes of one back-end (iSAM2 by default) over the same bag, each as ``fgslam
+run DIR`` runs it with the same config (the directory's ``backend.yaml``, or ``--config``: the
+back-end's overrides, the runner's and every relocalizer's settings, fix heights from a terrain
+model; :class:`fgslam.run_setup.RunSetup`) but for the kinds the pass names:
 
 - ``no fixes``: rocks and craters mapped, no relocalization (the drift);
 - ``rocks alone``: crater frames left out (``kinds.craters.use`` False), rock fixes;
@@ -25,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 
-from fgslam.bench.sim_dir import directory_overrides, first_seconds
 from fgslam.fix_sources import WrappedProducer
 from fgslam.metrics import fix_errors, interpolate_truth
 
@@ -77,37 +78,31 @@ class _CountingRelocalizer(WrappedProducer):
         return att
 
 
-def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[[str], None] | None = None) -> dict:
-    """Every pass of ``cfg`` on the ``fgslam sim`` directory (see module doc): a JSON-ready dict."""
-    from fgslam.backends.registry import make_backend
-    from fgslam.fix_sources import NoFixes, OnlineFixes, relocalizers_for
-    from fgslam.inputs import load_sim_dir, truth_of
-    from fgslam.long_traverse import LongTraverseConfig, backend_overrides_for, run_span_s
+def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[[str], None] | None = None,
+                    config: Path | None = None) -> dict:
+    """Every pass of ``cfg`` on the ``fgslam sim`` directory (see module doc), each as ``fgslam run
+    DIR --config CONFIG`` makes it (None: the directory's ``backend.yaml``) but for the pass's
+    kinds: a JSON-ready dict."""
+    from fgslam.fix_sources import OnlineFixes
     from fgslam.metrics import ate
-    from fgslam.runner import run_backend
+    from fgslam.run_setup import RunSetup
 
     directory = Path(directory)
-    inputs = load_sim_dir(directory)
-    gt = truth_of(inputs)
+    setup = RunSetup.of_directory(directory, config, cfg.duration_s)
+    inputs, gt = setup.inputs, setup.gt
     out: dict = {"directory": str(directory), "duration_s": cfg.duration_s, "catalog_craters": len(inputs.catalogs.get("craters", ())),
                  "catalog_rocks": len(inputs.catalogs["rocks"]), "passes": {}}
     for name in cfg.passes:
         craters_used, relocs = PASSES[name]
         if progress is not None:
             progress(f"{directory.name}: {name}")
-        producers = relocalizers_for({k: inputs.catalogs[k] for k in relocs if k in inputs.catalogs})
+        producers = setup.relocalizers(relocs)
         counted = None
         for i, r in enumerate(producers):
             if r.kinds == ("craters",):
                 counted = producers[i] = _CountingRelocalizer(r, inputs.catalogs["craters"], gt, cfg)
-        span = run_span_s(gt, inputs.measurements, cfg.duration_s)
-        # the long-traverse defaults as `fgslam run` gets them (fixed-lag iSAM2 beyond 30 min: a
-        # 4000 s stretch in full mode ran at 1.4x real time)
-        overrides = backend_overrides_for(cfg.backend, directory_overrides(directory, cfg.backend, craters_used), span,
-                                          LongTraverseConfig())
-        be = make_backend(cfg.backend, inputs.initial, overrides)
-        res = run_backend(be, first_seconds(inputs.measurements, cfg.duration_s),
-                          OnlineFixes(producers) if producers else NoFixes())
+        be = setup.backend(cfg.backend, None if craters_used else {"kinds": {"craters": {"use": False}}})
+        res = setup.run(be, OnlineFixes(producers) if producers else None)
         row: dict = {"ate_rmse_m": ate(res.final, gt).rmse, "wall_s": res.wall_s,
                      "landmarks": {k: len(m) for k, m in res.landmarks.items()}}
         accepted = {(o.fix.t_meas, o.fix.t_recv) for o in res.outcomes if o.accepted}

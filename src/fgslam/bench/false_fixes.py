@@ -163,14 +163,8 @@ def summarize(records: list[dict], bound: Mapping[str, float]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from fgslam.backends.registry import make_backend
-    from fgslam.bench.sim_dir import first_seconds
-    from fgslam.compare import relocalizer_set
-    from fgslam.config_file import load_compare_config
     from fgslam.fix_sources import OnlineFixes
-    from fgslam.inputs import check_stream, load_sim_dir, truth_of
-    from fgslam.long_traverse import backend_overrides_for, run_span_s
-    from fgslam.runner import run_backend
+    from fgslam.run_setup import RunSetup
     from reloc.config import config_from_dict
     from reloc.matcher import MatcherConfig
 
@@ -183,16 +177,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    cfg = load_compare_config(args.config if args.config is not None else
-                              (args.directory / "backend.yaml" if (args.directory / "backend.yaml").is_file() else None))
-    inputs = load_sim_dir(args.directory)
-    gt = truth_of(inputs)
+    setup = RunSetup.of_directory(args.directory, args.config, args.duration_s)
+    gt = setup.gt
     if gt is None:
         raise SystemExit(f"{args.directory}: no ground truth in the bag: out-of-catalog places come from it")
-    runner_cfg = check_stream(inputs, cfg.runner)
-    span = run_span_s(gt, inputs.measurements, args.duration_s)
     probes, bound = [], {}
-    relocs = relocalizer_set(inputs, cfg)
+    relocs = setup.relocalizers()
     wanted = {r.kinds[0] for r in relocs} if args.kinds is None else set(args.kinds.split(","))
     unknown = wanted - {r.kinds[0] for r in relocs}
     if unknown:
@@ -201,12 +191,10 @@ def main(argv: list[str] | None = None) -> dict:
         kind = r.kinds[0]
         if kind not in wanted:
             continue
-        probes.append(OutOfCatalogProbe(kind, inputs.catalogs[kind], r.config, gt))
+        probes.append(OutOfCatalogProbe(kind, setup.inputs.catalogs[kind], r.config, gt))
         mcfg = config_from_dict(MatcherConfig, dict(r.config.matcher or {}), where="matcher.")
         bound[kind] = 10.0 ** mcfg.max_log10_false_alarm
-    be = make_backend(args.backend, inputs.initial,
-                      backend_overrides_for(args.backend, cfg.backend_overrides.get(args.backend), span, cfg.long_traverse))
-    run_backend(be, first_seconds(inputs.measurements, args.duration_s), OnlineFixes(probes), config=runner_cfg)
+    setup.run(setup.backend(args.backend), OnlineFixes(probes))
     records = [rec for p in probes for rec in p.records]
     res = {"directory": str(args.directory), "backend": args.backend, "duration_s": args.duration_s,
            "kinds": summarize(records, bound)}

@@ -81,36 +81,19 @@ def bench_directory(directory: Path, cfg: WrongFixBenchConfig, config: Path | No
                     progress: Callable[[str], None] | None = None) -> dict:
     """The wrong-fix experiment on one ``fgslam sim`` directory (see module doc), as a JSON-ready dict."""
     from fgslam import metrics as M
-    from fgslam.backends.registry import make_backend
-    from fgslam.bench.sim_dir import first_seconds
-    from fgslam.cli.cmd_run import sim_dir_config
-    from fgslam.compare import relocalizer_set
-    from fgslam.config_file import load_compare_config
     from fgslam.fix_sources import OnlineFixes, ReplayedFixes
-    from fgslam.inputs import check_stream, load_sim_dir, truth_of
-    from fgslam.long_traverse import backend_overrides_for, run_span_s, runner_config_for
-    from fgslam.runner import run_backend
+    from fgslam.run_setup import RunSetup
 
     say = progress or (lambda s: None)
-    cmp_cfg = load_compare_config(sim_dir_config(directory, config))
-    inputs = load_sim_dir(directory)
-    gt = truth_of(inputs)
-    span = run_span_s(gt, inputs.measurements, cfg.duration_s)
-    runner = runner_config_for(check_stream(inputs, cmp_cfg.runner), span, cmp_cfg.long_traverse)
-
-    def measurements():
-        return first_seconds(inputs.measurements, cfg.duration_s)
-
-    def backend(name):
-        over = backend_overrides_for(name, cmp_cfg.backend_overrides.get(name), span, cmp_cfg.long_traverse)
-        return make_backend(name, inputs.initial, over)
+    setup = RunSetup.of_directory(directory, config, cfg.duration_s)
+    gt = setup.gt
 
     def pass_(name, fixes):
-        return run_backend(backend(name), measurements(), fixes, config=runner, keep_truth=False)
+        return setup.run(setup.backend(name), fixes)
 
     ref = cfg.backends[0]
     say(f"{directory.name}: {ref} + reloc (online: the shared fixes)")
-    good = {ref: pass_(ref, OnlineFixes(relocalizer_set(inputs, cmp_cfg)))}
+    good = {ref: pass_(ref, OnlineFixes(setup.relocalizers()))}
     attempts = good[ref].attempts
     fixes = [a.fix for a in attempts if a.fix is not None]
     if not fixes:
@@ -135,7 +118,7 @@ def bench_directory(directory: Path, cfg: WrongFixBenchConfig, config: Path | No
             "wrong_accepted": sum(1 for o in accepted if _fix_id(o.fix) in wrong_ids),
             "retracted": len(bad.stats.extra.get("retracted_fixes", [])),
         }
-    return {"directory": str(directory), "reference": ref, "duration_s": span, "attempts": len(attempts),
+    return {"directory": str(directory), "reference": ref, "duration_s": setup.span_s, "attempts": len(attempts),
             "fixes": len(fixes), "wrong": int(wrong.sum()), "backends": rows}
 
 
