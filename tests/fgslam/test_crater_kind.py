@@ -293,3 +293,4 @@ def test_bench_craters_runs_each_pass_as_fgslam_run_does_with_the_directory_conf
         made = [a for a in run.result.attempts if a.source == source]
         assert bench["fixes"][source]["attempts"] == len(made)
         assert bench["fixes"][source]["fixes"] == sum(1 for a in made if a.fix is not None)
+        assert sum(bench["fixes"][source]["statuses"].values()) == len(made)

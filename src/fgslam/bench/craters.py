@@ -108,8 +108,10 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         accepted = {(o.fix.t_meas, o.fix.t_recv) for o in res.outcomes if o.accepted}
         by_source: dict = {}
         for att in res.attempts:
-            b = by_source.setdefault(att.source, {"attempts": 0, "fixes": 0, "accepted": 0, "wrong": 0, "errors_m": []})
+            b = by_source.setdefault(att.source, {"attempts": 0, "fixes": 0, "accepted": 0, "wrong": 0, "errors_m": [],
+                                                  "statuses": Counter()})
             b["attempts"] += 1
+            b["statuses"][att.status] += 1  # why the others gave no fix
             if att.fix is not None:
                 err = float(fix_errors(np.array([att.fix.xyyaw]), np.array([att.fix.t_meas]), gt)[0][0])
                 b["fixes"] += 1
@@ -119,6 +121,7 @@ def bench_directory(directory: Path, cfg: CraterBenchConfig, progress: Callable[
         for b in by_source.values():
             e = b.pop("errors_m")
             b["median_error_m"] = float(np.median(e)) if e else None
+            b["statuses"] = dict(b["statuses"])
         row["fixes"] = by_source
         if counted is not None:
             should = [(t, n, a) for t, n, a in counted.records if n >= cfg.min_catalogued]
