@@ -60,10 +60,11 @@ class RunSetup:
     def of_directory(cls, directory: Path, config: Path | None = None, duration_s: float | None = None) -> RunSetup:
         """An ``fgslam sim`` directory with ``config`` (None: the directory's ``backend.yaml`` when it
         has one, as ``fgslam run DIR`` takes it)."""
-        from fgslam.cli.cmd_run import load_config, sim_dir_config
+        from fgslam.cli.cmd_run import sim_dir_config
+        from fgslam.config_file import load_compare_config
         from fgslam.inputs import bag_topics, load_sim_dir
 
-        cfg = load_config(sim_dir_config(Path(directory), config))
+        cfg = load_compare_config(sim_dir_config(Path(directory), config))
         return cls.of(load_sim_dir(Path(directory), topics=bag_topics(cfg.topics), images=cfg.images), cfg, duration_s)
 
     def overrides(self, name: str, extra: dict | None = None) -> dict:
