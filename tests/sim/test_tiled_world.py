@@ -111,3 +111,25 @@ def test_tiled_configs_reject_what_streaming_cannot_honour():
     assert cfg.tiled.size_m == pytest.approx(2 * TILED_PRESETS["sparse-5km"].size_m)  # grown for the length
     with pytest.raises(SimError, match="tiled.rocks.k is not set"):
         TiledWorld("x", 0, dataclasses.replace(cfg.tiled, rocks=dataclasses.replace(cfg.tiled.rocks, k=None)))
+
+
+def test_sparse_ground_presets_give_the_smoother_its_sparse_model_from_the_gyro_datasheet():
+    from fgslam.smoother.config import SmootherConfig
+    from reloc.config import config_from_dict
+    from sim.tiled.presets import backend_calibration
+
+    for name, preset in TILED_PRESETS.items():
+        cfg = preset_config(name, 0)
+        isam2 = backend_calibration(cfg)["isam2"]
+        config_from_dict(SmootherConfig, isam2)  # the smoother accepts what `fgslam sim` writes
+        odo, imu = isam2["odometry"], cfg.sensors.imu
+        if preset.sparse_ground:
+            assert odo["sigma_rot_radpsqrts"] == imu.gyro_noise_radps_rsqrt_hz  # the bias is a variable now
+            assert odo["yaw_rate_bias_sigma_radps"] == imu.gyro_bias_sigma_radps > 0
+            assert odo["yaw_rate_bias_walk_radps_rsqrt_s"] == imu.gyro_bias_walk_radps_rsqrt_s
+            assert odo["slip_sigma"] > 0 and isam2["calibration"]["roll_sigma_deg"] == 0.0
+        else:  # the bias folded into the rotation noise, no slip variable, the roll estimated
+            assert odo["sigma_rot_radpsqrts"] > imu.gyro_noise_radps_rsqrt_hz
+            assert not {"yaw_rate_bias_sigma_radps", "slip_sigma"} & set(odo)
+            assert "roll_sigma_deg" not in isam2["calibration"]
+    assert [n for n, p in TILED_PRESETS.items() if p.sparse_ground] == ["sparse-5km"]
