@@ -137,7 +137,8 @@ def compare(directories: list[str | Path], *, out: str | Path | None = None, con
             rrd: bool = True) -> list[dict]:
     """``fgslam compare``: EKF and iSAM2, with and without the same fixes, on each ``fgslam sim``
     directory; returns each input's metrics (as results.json's ``worlds``), files into ``out``.
-    Without ``config`` the directories' common ``backend.yaml`` is used, as the command does."""
+    Without ``config`` the directories' common ``backend.yaml`` is used, as the command does
+    (directories whose ``backend.yaml`` differ are an error there too)."""
     import dataclasses
 
     from fgslam.cli.cmd_run import compare_dirs_config

@@ -5,10 +5,10 @@ SLAM without fixes cannot observe the world's position and heading, so an honest
 covariance grows with the error; one that stays small while the error grows is what later keeps
 fixes from pulling (docs/ekf.md, "Consistency"). The back-end runs with the settings ``fgslam
 run DIR`` gives it (:class:`fgslam.run_setup.RunSetup`: the directory's ``backend.yaml``, the
-long-traverse settings; rocks only unless ``--craters``), over the first ``--duration-s`` seconds, and every ``--bin-s``
-seconds of stream the table gives the distance driven, the RMS planar error and the mean planar
-sigma, the height error and sigma and the yaw error and sigma at the bin's end, and the mean
-position and yaw NEES of the bin.
+long-traverse settings; rocks only unless ``--craters``), over the first ``--duration-s``
+seconds, and every ``--bin-s`` seconds of stream the table gives the distance driven, the RMS
+planar error and the mean planar sigma, the height error and sigma and the yaw error and sigma at
+the bin's end, and the mean position and yaw NEES of the bin.
 The whole stretch's NEES gets the two-sided verdict of :func:`fgslam.nees.whitened_test`.
 """
 
