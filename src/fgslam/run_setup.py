@@ -83,14 +83,19 @@ class RunSetup:
         return make_backend(name, self.inputs.initial, self.overrides(name, extra))
 
     def relocalizers(self, kinds: Iterable[str] | None = None) -> list:
-        """The run's relocalizers (module doc), only those of ``kinds`` when given."""
+        """The run's relocalizers (module doc), only those of ``kinds`` when given (the others are
+        not built)."""
+        import dataclasses
+
         from fgslam.compare import relocalizer_set
 
-        relocs = relocalizer_set(self.inputs, self.cfg)
         if kinds is None:
-            return relocs
+            return relocalizer_set(self.inputs, self.cfg)
         wanted = set(kinds)
-        return [r for r in relocs if set(r.kinds) <= wanted]
+        inputs = dataclasses.replace(self.inputs, catalogs={k: c for k, c in self.inputs.catalogs.items() if k in wanted})
+        cfg = dataclasses.replace(self.cfg, kind_relocalizers={k: v for k, v in self.cfg.kind_relocalizers.items()
+                                                               if k in wanted})
+        return relocalizer_set(inputs, cfg)
 
     def measurements(self) -> Iterator:
         """The stream, cut to ``duration_s`` (a new iterator at every call)."""
