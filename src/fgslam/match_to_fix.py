@@ -205,13 +205,17 @@ def _own_gate(lmap: LandmarkMap, i: int, catalog_xy: np.ndarray, catalog_size: n
     """Landmark ``i``'s own gate: its planar world covariance plus the catalog's sigma per axis
     at the landmark's size (:func:`catalog_sigma`; its entries are size-compatible) ``S`` (2, 2),
     the size-compatible catalog rows inside it (chi-square ``single_gate_chi2``) with their
-    squared Mahalanobis distances, and that sigma; None when ``S`` is not a covariance."""
+    squared Mahalanobis distances, and that sigma; None when ``S`` is not a covariance or the gate
+    reaches beyond ``single_density_radius_m`` (the disc its chance density is counted on, which
+    would then not describe the gate)."""
     sigma_c = float(catalog_sigma(cfg, sigma_m, lmap.size_m[i]))
     S = 0.5 * (lmap.cov_world_m2[i, :2, :2] + lmap.cov_world_m2[i, :2, :2].T) + sigma_c ** 2 * np.eye(2)
     if not np.all(np.isfinite(S)) or np.linalg.det(S) <= 0.0:
         return None
     l_xy = lmap.xyz_world_m[i, :2]
     reach = float(np.sqrt(cfg.single_gate_chi2 * np.linalg.eigvalsh(S)[-1]))
+    if reach > cfg.single_density_radius_m:
+        return None
     rows = _size_compatible(np.asarray(tree.query_ball_point(l_xy, reach), dtype=int), catalog_size,
                             float(lmap.size_m[i]), size_ratio_max)
     d = catalog_xy[rows] - l_xy

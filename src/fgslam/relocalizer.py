@@ -253,16 +253,17 @@ class Relocalizer:
     def _identify(self, lmap: LandmarkMap, idx: np.ndarray, est: PoseEstimate, est_xyyaw: np.ndarray,
                   dt_match: float, live: np.ndarray) -> FixAttempt | None:
         """A fix from two landmarks identified together (``RelocalizerConfig.pair_landmarks``),
-        else a position fix from one identified alone (``single_landmark``), or None: off, lost,
-        or no landmark passes. Landmarks anchored on a catalog entry already are left out; with
-        ``anchor_landmarks`` the fix names its landmarks of ``live`` (the back-end's ids) and their
-        entries (:class:`reloc.measurements.CatalogAnchor`)."""
+        else a position fix from one identified alone (``single_landmark``), or None: off, or no
+        landmark passes. A lost estimate is tried too: each landmark's gate holds the rover's
+        drift, the false-alarm bound counts the chance entries in it, and a gate wider than the
+        disc that density is counted on identifies nothing (``single_density_radius_m``).
+        Landmarks anchored on a catalog entry already are left out; with ``anchor_landmarks`` the
+        fix names its landmarks of ``live`` (the back-end's ids) and their entries
+        (:class:`reloc.measurements.CatalogAnchor`)."""
         cfg = self.config
         idx = idx[lmap.anchored_rows[idx] < 0]  # their entry is on them: a fix would repeat it
         if not (cfg.single_landmark or cfg.pair_landmarks) or idx.size == 0:
             return None
-        if is_lost(est, cfg.lost_sigma_m):
-            return None  # lost: the gate would hold half the catalog
         t0 = time.perf_counter()
         if self._single_tree is None:
             from scipy.spatial import cKDTree

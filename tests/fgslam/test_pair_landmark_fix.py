@@ -113,14 +113,20 @@ def test_maps_of_no_place_in_the_catalog_give_no_pair_fix():
     assert passed == 0 and fooled >= 3
 
 
-def test_an_ambiguous_pair_and_a_lost_rover_give_no_fix():
+def test_an_ambiguous_pair_gives_no_fix_and_a_lost_rover_a_weak_right_one():
     est, lmap = _scene()
     # a second entry beside the far rock that reproduces the separation as well: which one is it?
     cat = _catalog(extra=[ROCKS[1] + [0.12, 0.0]])
     att = Relocalizer(cat, _cfg()).attempt({"rocks": lmap}, est)
     assert att.status == "too few landmarks"
+    # lost (20 m) since the rocks were mapped: their gates and separation identify them as before,
+    # and the fix claims the rover's drift relative to them
     lost = PoseEstimate(est.t, est.T_world_base, np.diag([400.0, 400.0, 0.01, 1e-4, 1e-4, 0.1]))
-    assert Relocalizer(_catalog(), _cfg()).attempt({"rocks": lmap}, lost).status == "too few landmarks"
+    assert lost.planar_sigma_m > RelocalizerConfig().lost_sigma_m
+    att = Relocalizer(_catalog(), _cfg()).attempt({"rocks": lmap}, lost)
+    assert att.status == "fix" and att.false_alarm <= 1e-3
+    assert np.allclose(att.fix.xyyaw, [*ROVER, YAW], atol=1e-9)
+    assert np.all(np.sqrt(np.diag(att.fix.cov_xyyaw)[:2]) > 19.0)
 
 
 def test_a_dense_field_refuses_the_pair():

@@ -118,12 +118,32 @@ def test_ambiguous_crowded_far_or_lost_gives_no_fix():
     # the drift beyond the gate: no candidate
     wide = _est(0.1)
     assert _reloc(_catalog()).attempt({"craters": _map(wide)}, wide).status == "too few landmarks"
-    # a crater beyond single_radius_m, or a lost rover
+    # a crater beyond single_radius_m
     assert _reloc(_catalog(), single_radius_m=5.0).attempt({"craters": _map(est)}, est).status == "too few landmarks"
+    # a lost rover (6 m): its crater's gate holds the drift, and a chance entry in it is too likely
     lost = _est(6.0)
     assert _reloc(_catalog()).attempt({"craters": _map(lost)}, lost).status == "too few landmarks"
     # off
     assert _reloc(_catalog(), single_landmark=False).attempt({"craters": _map(est)}, est).status == "too few landmarks"
+
+
+def test_a_lost_rover_is_identified_as_its_bound_allows_never_beyond_the_density_disc():
+    """Lost (a planar sigma above ``lost_sigma_m``) is no reason of its own: the crater's gate
+    holds the rover's drift and the bound counts the chance entries in it. With a bound that
+    allows a gate of 6 m sigma, the crater is identified and the fix is right, claiming the
+    catalog's error and the crater's relative to the rover, not the drift; a gate reaching beyond
+    ``single_density_radius_m`` (200 m, 60 m sigma), where the density counted does not describe
+    it, identifies nothing at any bound."""
+    lost = _est(6.0)
+    assert lost.planar_sigma_m > RelocalizerConfig().lost_sigma_m
+    att = _reloc(_catalog(), single_max_false_alarm=0.05).attempt({"craters": _map(lost)}, lost)
+    assert att.status == "fix" and att.single and 1e-3 < att.false_alarm <= 0.05
+    err = np.array([att.fix.x_m, att.fix.y_m]) - (lost.position_m[:2] - DRIFT)
+    assert np.linalg.norm(err) < 1e-9
+    assert np.allclose(att.fix.cov_xyyaw[:2, :2], 1.75**2 * (0.3**2 + (0.06 * 3.1) ** 2 + 0.15**2) * np.eye(2), atol=1e-9)
+    very = _est(60.0)
+    att = _reloc(_catalog(), single_max_false_alarm=0.5).attempt({"craters": _map(very)}, very)
+    assert att.status == "too few landmarks"
 
 
 def test_single_settings_are_checked():
