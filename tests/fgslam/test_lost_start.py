@@ -145,3 +145,53 @@ def test_a_reanchoring_far_from_the_start_adds_only_the_odometry_since_t_meas(ba
     got = be.inner.estimate().cov
     assert got[0, 0] + got[1, 1] == pytest.approx(fix_cov[0, 0] + fix_cov[1, 1] + growth[0] + growth[1], rel=0.05)
     assert got[5, 5] == pytest.approx(fix_cov[2, 2] + growth[5], rel=0.05)
+
+
+class _MapOnly:
+    """A back-end stand-in that holds a pose and one mapped crater (relative to its start)."""
+
+    name, config = "stub", None
+
+    def __init__(self, initial: PoseEstimate) -> None:
+        self.initial = initial
+
+    def estimate(self) -> PoseEstimate:
+        return self.initial
+
+    def landmark_map(self, kind: str):
+        from reloc.backend import LandmarkMap
+
+        xy = self.initial.position_m[:2] + np.array([10.0, 2.0])
+        return LandmarkMap(np.array([4]), np.array([[*xy, 0.0]]), (0.1**2 * np.eye(3))[None], np.array([3.0]),
+                           np.array([6]), kind)
+
+
+def test_a_lost_starts_map_holds_the_anchor_so_no_tight_gate_identifies_a_chance_crater():
+    """While lost, a landmark is placed only relative to the start, so its world covariance holds
+    the start's uncertainty as the estimate's does (the map's convention): the map reported
+    carries the anchor. Without it a crater's gate would be 0.1 m wide where the rover is 50 m
+    unsure, and a chance catalog crater in it would be identified with a small false-alarm bound
+    and re-anchor the rover on it."""
+    from fgslam.crater_relocalizer import CraterRelocalizer
+    from reloc.measurements import RockCatalog
+
+    T = np.eye(4)
+    T[:2, 3] = [200.0, 100.0]
+    lost = PoseEstimate(0.0, T, np.diag([50.0**2, 50.0**2, 0.01**2, 1e-4, 1e-4, np.radians(30.0) ** 2]))
+    be = Reanchoring(_MapOnly, lost)
+    inner = be.inner.landmark_map("craters")
+    lmap = be.landmark_map("craters")
+    extra = anchor_cov(be._anchor, lost.position_m, inner.xyz_world_m)[:, :3, :3]
+    assert np.allclose(lmap.cov_world_m2, inner.cov_world_m2 + extra)
+    assert np.sqrt(lmap.cov_world_m2[0, 0, 0]) > 49.0 and np.allclose(lmap.xyz_world_m, inner.xyz_world_m)
+    # a chance crater of the same size 0.1 m from where the lost rover put its crater, the rest
+    # of the young catalog hundreds of metres away
+    rng = np.random.default_rng(4)
+    far = rng.uniform(-2000.0, 2000.0, (60, 2))
+    far = far[np.linalg.norm(far - inner.xyz_world_m[0, :2], axis=1) > 300.0]
+    cat = RockCatalog(np.vstack([inner.xyz_world_m[0, :2] + [0.1, 0.0], far]),
+                      np.concatenate([[3.0], rng.uniform(1.0, 6.0, len(far))]), np.ones(len(far) + 1))
+    cfg = {"min_new_observations": 0, "min_travel_m": 0.0, "min_turn_deg": 0.0}
+    est = be.estimate()
+    assert CraterRelocalizer(cat, cfg).attempt({"craters": inner}, est).status == "fix"  # the tight gate's wrong fix
+    assert CraterRelocalizer(cat, cfg).attempt({"craters": lmap}, est).status == "too few landmarks"

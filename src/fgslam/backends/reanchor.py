@@ -28,6 +28,7 @@ position sigma exceeds ``lost_sigma_m`` (:func:`fgslam.backends.registry.make_ba
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from collections.abc import Callable
 
@@ -168,7 +169,14 @@ class Reanchoring(Backend):
         return self._anchored(self.inner.estimate())
 
     def landmark_map(self, kind: str):
-        return self.inner.landmark_map(kind)
+        """The wrapped back-end's map, its world covariances with the anchor's uncertainty added
+        while lost (a landmark is where the world frame is: :class:`reloc.backend.LandmarkMap`), so
+        that a landmark's gate holds the start's uncertainty, as the estimate's does."""
+        lmap = self.inner.landmark_map(kind)
+        if self._anchor is None or len(lmap) == 0:
+            return lmap
+        extra = anchor_cov(self._anchor, self._p0, lmap.xyz_world_m)[:, :3, :3]
+        return dataclasses.replace(lmap, cov_world_m2=np.asarray(lmap.cov_world_m2, dtype=float) + extra)
 
     def trajectory(self) -> Trajectory:
         """The path before the latest re-anchoring (moved by each), then the current back-end's
