@@ -186,9 +186,9 @@ def sparse_ground_model(isam2: dict, imu) -> None:
     holds it). On sparse-5km, iSAM2 + reloc against the kilometre model (docs/smoother.md): seed 0
     2.5 km 0.967 -> 0.858 m, seed 1 1.5 km 9.543 -> 3.829 m, seed 2 1.5 km 0.943 -> 0.563 m; on
     rocky-1km and cratered-3km (500 m, seed 0) it cost 9 % and 30 %, so the dense presets keep
-    the kilometre model. Without fixes it drifts more (sparse-5km seed 0 2.5 km 36.0 m against
-    20.0 m, seed 2 1.5 km 15.8 m against 6.6 m): it is taken for relocalizing, and that drift is
-    open."""
+    the kilometre model. Without fixes it drifts more (sparse-5km seed 0 2.5 km 33-36 m against
+    20.0 m, seed 2 1.5 km 15.8 m against 6.6 m; either variable alone drifts as the kilometre
+    model, the two together do not, not traced): it is taken for relocalizing."""
     odo = isam2.setdefault("odometry", {})
     odo.update(sigma_rot_radpsqrts=float(imu.gyro_noise_radps_rsqrt_hz),
                yaw_rate_bias_sigma_radps=float(imu.gyro_bias_sigma_radps),

@@ -14,7 +14,7 @@ would do with the same directory and ``--config``.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -85,15 +85,13 @@ class RunSetup:
     def relocalizers(self, kinds: Iterable[str] | None = None) -> list:
         """The run's relocalizers (module doc), only those of ``kinds`` when given (the others are
         not built)."""
-        import dataclasses
-
         from fgslam.compare import relocalizer_set
 
         if kinds is None:
             return relocalizer_set(self.inputs, self.cfg)
         wanted = set(kinds)
-        inputs = dataclasses.replace(self.inputs, catalogs={k: c for k, c in self.inputs.catalogs.items() if k in wanted})
-        cfg = dataclasses.replace(self.cfg, kind_relocalizers={k: v for k, v in self.cfg.kind_relocalizers.items()
+        inputs = replace(self.inputs, catalogs={k: c for k, c in self.inputs.catalogs.items() if k in wanted})
+        cfg = replace(self.cfg, kind_relocalizers={k: v for k, v in self.cfg.kind_relocalizers.items()
                                                                if k in wanted})
         return relocalizer_set(inputs, cfg)
 

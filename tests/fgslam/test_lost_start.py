@@ -181,7 +181,8 @@ def test_a_lost_starts_map_holds_the_anchor_so_no_tight_gate_identifies_a_chance
     be = Reanchoring(_MapOnly, lost)
     inner = be.inner.landmark_map("craters")
     lmap = be.landmark_map("craters")
-    extra = anchor_cov(be._anchor, lost.position_m, inner.xyz_world_m)[:, :3, :3]
+    _, anchor = split_start(lost)
+    extra = anchor_cov(anchor, lost.position_m, inner.xyz_world_m)[:, :3, :3]
     assert np.allclose(lmap.cov_world_m2, inner.cov_world_m2 + extra)
     assert np.sqrt(lmap.cov_world_m2[0, 0, 0]) > 49.0 and np.allclose(lmap.xyz_world_m, inner.xyz_world_m)
     # a chance crater of the same size 0.1 m from where the lost rover put its crater, the rest
