@@ -10,8 +10,11 @@ plus, for slip, a forward and lateral variance proportional to the distance driv
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
+
+import numpy as np
 
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
@@ -51,7 +54,14 @@ class MotionNoiseConfig:
 class FixGateConfig:
     """Gates of the planar global fix (the reference design's distance/yaw gate + Mahalanobis)."""
 
-    distance_m: Positive = 3.0  # |fix xy - estimate xy at t_meas| above this -> rejected
+    # |fix xy - estimate xy at t_meas| above max(distance_m, distance_sigmas x the innovation's
+    # largest planar sigma) -> rejected. The metres are the reference design's gate against a
+    # confidently wrong match; the sigmas let a filter that has drifted further than that (and
+    # knows it) take the fixes it needs (sparse-5km seed 1: a filter 6 m off, its right fixes
+    # 6.1-6.3 m away refused by a 3 m gate). 0 sigmas: the metres alone. The Mahalanobis gate
+    # below still decides on the whole innovation.
+    distance_m: Positive = 3.0
+    distance_sigmas: NonNegative = 4.0
     yaw_deg: Annotated[float, Interval(gt=0, le=180)] = 15.0  # |fix yaw - estimate yaw| above this -> rejected
     chi2: Positive = 16.27  # squared Mahalanobis distance (3 dof, 99.9 %) above this -> rejected
     # a fix's height (fgslam.terrain_height): its squared Mahalanobis distance (1 dof, 99.9 %) above
@@ -93,6 +103,14 @@ class FixGateConfig:
     consensus_window_s: Positive = 30.0
     consensus_tol_m: Positive = 0.3
     consensus_tol_deg: Positive = 2.0
+
+    def distance_limit_m(self, S_xy) -> float:
+        """The distance gate for a planar innovation of covariance ``S_xy`` (2, 2):
+        ``max(distance_m, distance_sigmas * sqrt(largest eigenvalue))``."""
+        if self.distance_sigmas <= 0.0:
+            return float(self.distance_m)
+        lam = float(np.linalg.eigvalsh(np.asarray(S_xy, float))[-1])
+        return max(float(self.distance_m), self.distance_sigmas * math.sqrt(max(lam, 0.0)))
 
 
 @dataclass(frozen=True)

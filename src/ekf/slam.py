@@ -250,10 +250,12 @@ class EkfSlam(Backend):
         for k, a in enumerate(fix.anchors):
             R[2 * k:2 * k + 2, 2 * k:2 * k + 2] = a.cov_xy
         if not force:
-            dist = float(np.max(np.hypot(nu[0::2], nu[1::2])))
-            if dist > gate.distance_m:
-                return FixOutcome(fix, False, f"distance gate (anchor) {dist:.2f} m > {gate.distance_m:.2f} m")
             S = s.P[np.ix_(cols, cols)] + R
+            for k in range(len(rows)):  # each landmark against its own innovation's spread
+                dist = math.hypot(nu[2 * k], nu[2 * k + 1])
+                limit = gate.distance_limit_m(S[2 * k:2 * k + 2, 2 * k:2 * k + 2])
+                if dist > limit:
+                    return FixOutcome(fix, False, f"distance gate (anchor) {dist:.2f} m > {limit:.2f} m")
             d2 = float(nu @ np.linalg.solve(S, nu))
             if not d2 <= gate.anchor_chi2_per_dof * len(cols):
                 return FixOutcome(fix, False, f"Mahalanobis gate (anchor) d2 {d2:.1f} > "
@@ -445,13 +447,13 @@ class EkfSlam(Backend):
             nu[2] = wrap_angle(float(nu[2]))
         else:
             R_fix = self._fix_cov(applied)
-        dist = math.hypot(nu[0], nu[1])
-        if not force and dist > gate.distance_m:
-            return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {gate.distance_m:.2f} m")
-        if not force and abs(math.degrees(nu[2])) > gate.yaw_deg:
-            return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
         P_sub = s.P[np.ix_(cols, cols)] if bias is None else bias.P_sub
         S = H[:3] @ P_sub @ H[:3].T + R_fix[:3, :3]
+        dist, limit = math.hypot(nu[0], nu[1]), gate.distance_limit_m(S[:2, :2])
+        if not force and dist > limit:
+            return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {limit:.2f} m")
+        if not force and abs(math.degrees(nu[2])) > gate.yaw_deg:
+            return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
         d2 = float(nu[:3] @ np.linalg.solve(S, nu[:3]))  # the planar part: the height was gated above
         key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
         if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again

@@ -108,6 +108,26 @@ def test_wrong_fix_10m_rejected_by_distance_gate(run):
     assert ekf.stats().n_fixes_rejected == 1 and ekf.stats().extra["fix_reject_reasons"] == {"distance": 1}
 
 
+@pytest.mark.parametrize("sigmas, accepted", [(4.0, True), (0.0, False)])
+def test_the_distance_gate_opens_with_the_filters_own_spread(sigmas, accepted):
+    """A filter that has drifted and knows it (5 m sigma) takes a right fix 6 m away: the gate is
+    max(distance_m, distance_sigmas x the innovation's largest sigma), 20 m here; with the
+    sigmas off, the 3 m of the reference design refuse it. A confident filter (0.5 m) still
+    refuses a fix 4 m away at the metres: 4 sigma of it is 2 m."""
+    cfg = EkfConfig(fix_gate=FixGateConfig(distance_sigmas=sigmas))
+    lost = EkfSlam(PoseEstimate(0.0, np.eye(4), np.diag([25.0, 25.0, 0.01, 1e-4, 1e-4, 1e-4])), cfg)
+    out = lost.apply_fix(GlobalFix(0.0, 0.0, 6.0, 0.5, 0.0, np.diag([0.01, 0.01, 1e-4])))
+    assert out.accepted is accepted
+    if accepted:  # the estimate goes (almost) where the fix is: 25 m^2 against 0.01 m^2
+        np.testing.assert_allclose(lost.estimate().position_m[:2], [6.0, 0.5], atol=0.01)
+        assert out.mahalanobis_d2 < 16.27
+    else:
+        assert out.reason == "distance gate 6.02 m > 3.00 m"
+    sure = EkfSlam(PoseEstimate(0.0, np.eye(4), np.diag([0.25, 0.25, 0.01, 1e-4, 1e-4, 1e-4])), cfg)
+    out = sure.apply_fix(GlobalFix(0.0, 0.0, 4.0, 0.0, 0.0, np.diag([0.01, 0.01, 1e-4])))
+    assert not out.accepted and out.reason == "distance gate 4.00 m > 3.00 m"
+
+
 def test_yaw_and_mahalanobis_gates(run):
     ekf = fed(run, 200, EkfConfig(fix_gate=FixGateConfig(distance_m=100.0)))
     out = ekf.apply_fix(fix_at(run, 200, dyaw=np.radians(30)))

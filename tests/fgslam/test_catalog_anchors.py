@@ -104,6 +104,30 @@ def test_anchors_off_take_the_fix_as_a_pose(stream, name):
     assert np.all(be.landmark_map("craters").anchored_rows == -1)
 
 
+@pytest.mark.parametrize("sigmas", [4.0, 0.0])
+def test_the_ekf_takes_a_far_anchor_its_covariance_allows(stream, sigmas):
+    """Started 4.5 m off with a 3 m sigma, the crater map is 4.5 m off its entries and the filter
+    knows it: the anchor's distance gate opens with the landmark's own spread (4 sigma), so the
+    entry goes on; with the sigmas off the reference design's 3 m refuse it."""
+    gt = truth_of(stream)
+    truth_xy = CraterField.draw(SEED, 3 * FIELD_M).xy
+    T = stream.initial.T_world_base.copy()
+    T[0, 3] += 4.5
+    start = PoseEstimate(stream.initial.t, T, np.diag([3.0**2, 3.0**2, 0.01**2, 1e-6, 1e-6, 1e-4]))
+    be = make_backend("ekf", start, {"fix_gate": {"distance_sigmas": sigmas}})
+    run_backend(be, stream.measurements)
+    before = _err(be, gt)
+    assert before > 4.0
+    fix, _ = _anchor_fix(be, truth_xy)
+    out = be.apply_fix(fix)
+    if sigmas > 0:
+        assert out.accepted, out.reason
+        assert be.stats().extra["n_anchor_fixes"] == 1 and _err(be, gt) < 0.5
+    else:
+        assert not out.accepted and out.reason.startswith("distance gate (anchor)") and "> 3.00 m" in out.reason
+        assert _err(be, gt) == before
+
+
 def test_the_ekf_keeps_an_anchor_through_a_late_fix_replay(stream):
     """The anchor is in the EKF's history: a late pose fix rolls back past it and replays it."""
     gt = truth_of(stream)
