@@ -10,13 +10,11 @@ plus, for slip, a forward and lateral variance proportional to the distance driv
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
-import numpy as np
-
 from reloc.association import AssociationConfig
+from reloc.backend import major_sigma
 from reloc.budget import ObservationBudget
 from reloc.calibration import CalibrationConfig
 from reloc.config import Interval, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
@@ -107,10 +105,9 @@ class FixGateConfig:
     def distance_limit_m(self, S_xy) -> float:
         """The distance gate for a planar innovation of covariance ``S_xy`` (2, 2):
         ``max(distance_m, distance_sigmas * sqrt(largest eigenvalue))``."""
-        if self.distance_sigmas <= 0.0:
+        if self.distance_sigmas == 0.0:
             return float(self.distance_m)
-        lam = float(np.linalg.eigvalsh(np.asarray(S_xy, float))[-1])
-        return max(float(self.distance_m), self.distance_sigmas * math.sqrt(max(lam, 0.0)))
+        return max(float(self.distance_m), self.distance_sigmas * major_sigma(S_xy))
 
 
 @dataclass(frozen=True)

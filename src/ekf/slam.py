@@ -449,11 +449,12 @@ class EkfSlam(Backend):
             R_fix = self._fix_cov(applied)
         P_sub = s.P[np.ix_(cols, cols)] if bias is None else bias.P_sub
         S = H[:3] @ P_sub @ H[:3].T + R_fix[:3, :3]
-        dist, limit = math.hypot(nu[0], nu[1]), gate.distance_limit_m(S[:2, :2])
-        if not force and dist > limit:
-            return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {limit:.2f} m")
-        if not force and abs(math.degrees(nu[2])) > gate.yaw_deg:
-            return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
+        if not force:  # a replay of an applied fix is not gated again
+            dist, limit = math.hypot(nu[0], nu[1]), gate.distance_limit_m(S[:2, :2])
+            if dist > limit:
+                return FixOutcome(fix, False, f"distance gate {dist:.2f} m > {limit:.2f} m")
+            if abs(math.degrees(nu[2])) > gate.yaw_deg:
+                return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
         d2 = float(nu[:3] @ np.linalg.solve(S, nu[:3]))  # the planar part: the height was gated above
         key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
         if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again

@@ -92,7 +92,7 @@ class RunSetup:
         wanted = set(kinds)
         inputs = replace(self.inputs, catalogs={k: c for k, c in self.inputs.catalogs.items() if k in wanted})
         cfg = replace(self.cfg, kind_relocalizers={k: v for k, v in self.cfg.kind_relocalizers.items()
-                                                               if k in wanted})
+                                                   if k in wanted})
         return relocalizer_set(inputs, cfg)
 
     def measurements(self) -> Iterator:

@@ -30,6 +30,11 @@ KNOWN_START_SIGMA_POS_M = 0.01
 KNOWN_START_SIGMA_ROT_RAD = 0.002
 
 
+def major_sigma(cov_xy) -> float:
+    """The largest standard deviation of a (2, 2) planar covariance (its largest eigenvalue's root)."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.asarray(cov_xy, dtype=float))[-1], 0.0)))
+
+
 def known_start_cov() -> np.ndarray:
     """(6, 6) covariance over ``[dp_world, dtheta_world]`` of a known start pose."""
     return np.diag([KNOWN_START_SIGMA_POS_M**2] * 3 + [KNOWN_START_SIGMA_ROT_RAD**2] * 3)
@@ -50,7 +55,7 @@ class PoseEstimate:
     @property
     def planar_sigma_m(self) -> float:
         """The largest planar standard deviation (m) of the position (its x/y covariance's)."""
-        return float(np.sqrt(max(np.linalg.eigvalsh(self.cov[:2, :2])[-1], 0.0)))
+        return major_sigma(self.cov[:2, :2])
 
     @property
     def yaw_rad(self) -> float:
