@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from ekf.blas import blas_limit
 from fgslam.errors import FgslamError
+from fgslam.fix_hold import FixHoldConfig, hold_far_fixes, settle
 from fgslam.fix_sources import FixSource, NoFixes
 from fgslam.front_end import MOTION_INPUTS, FrontEnd, SharedSteps
 from fgslam.relocalizer import FixAttempt
@@ -91,6 +92,9 @@ class RunnerConfig:
     # a gyro bias step seen by the landmarks corrects the IMU's heading for both back-ends
     # (reloc.gyro): the fault table's IMU bias step (docs/sim.md)
     gyro: GyroConfig = field(default_factory=GyroConfig)
+    # a fix far from the estimate waits for a second one that agrees (fgslam.fix_hold): wrong
+    # fixes that a drifted back-end's own gates would take
+    fix_hold: FixHoldConfig = field(default_factory=FixHoldConfig)
 
 
 @dataclass
@@ -308,8 +312,8 @@ def run_backend(
     cfg = config or RunnerConfig()
     front = steps.for_pass() if steps is not None and steps.matches(measurements, cfg) else FrontEnd(cfg)
     with blas_limit(cfg.blas_threads), frozen_heap(cfg.freeze_heap):
-        return _run(TimedBackend(backend, cpu=time_cpu), measurements, fixes or NoFixes(), cfg, front, on_progress,
-                    observer, keep_truth)
+        be = TimedBackend(hold_far_fixes(backend, cfg.fix_hold), cpu=time_cpu)
+        return _run(be, measurements, fixes or NoFixes(), cfg, front, on_progress, observer, keep_truth)
 
 
 _FREEZE_LOCK = threading.Lock()
@@ -357,9 +361,9 @@ def _run(be: TimedBackend, measurements: Iterable, fixes: FixSource, cfg: Runner
         t = m.t
         rec.saw(t)
         for fix in fixes.due(t, be):  # deliver the fixes that are due
-            outcomes.append(be.apply_fix(fix))
-            if observer is not None:
-                observer.fix(outcomes[-1])
+            for outcome in settle(outcomes, be.apply_fix(fix)):  # a held far fix decided later
+                if observer is not None:
+                    observer.fix(outcome)
         if isinstance(m, MOTION_INPUTS):
             step = front.motion(i, m)  # odometry corrected for slip and gyro bias
             if step is not None:  # predict

@@ -112,13 +112,15 @@ class FixOutcome:
 
     ``accepted`` False comes with a ``reason`` (e.g. "distance gate 4.2 m > 3.0 m",
     "older than history"); ``mahalanobis_d2`` is the fix innovation's squared Mahalanobis distance
-    when it was computed.
+    when it was computed. ``released``: the outcomes of earlier fixes that were held and went to
+    the back-end with this one (:mod:`fgslam.fix_hold`), each replacing that fix's held outcome.
     """
 
     fix: GlobalFix
     accepted: bool
     reason: str = ""
     mahalanobis_d2: float = float("nan")
+    released: tuple[FixOutcome, ...] = ()
 
 
 @dataclass(frozen=True)

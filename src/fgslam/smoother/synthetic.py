@@ -205,15 +205,17 @@ class DriveResult:
 
 
 def drive(backend, measurements: list, fixes: list[GlobalFix] = (), sample_hz: float = 1.0,
-          progress=None) -> DriveResult:
+          progress=None, hold=None) -> DriveResult:
     """Run a back-end over a sorted measurement stream with the runner (:func:`fgslam.runner.run_backend`),
     each fix delivered when the stream reaches its ``t_recv``; the causal estimate recorded at
-    ``sample_hz``; ``progress(t)`` called as the runner reports progress."""
+    ``sample_hz``; ``progress(t)`` called as the runner reports progress. ``hold``: the runner's
+    :class:`fgslam.fix_hold.FixHoldConfig` (None: off, every fix reaches the back-end's own gates)."""
+    from fgslam.fix_hold import FixHoldConfig
     from fgslam.fix_sources import ReplayedFixes
     from fgslam.runner import RunnerConfig, run_backend
 
-    res = run_backend(backend, measurements, ReplayedFixes(fixes), config=RunnerConfig(record_rate_hz=sample_hz),
-                      on_progress=progress, time_cpu=True)
+    cfg = RunnerConfig(record_rate_hz=sample_hz, fix_hold=hold if hold is not None else FixHoldConfig(beyond_m=0.0))
+    res = run_backend(backend, measurements, ReplayedFixes(fixes), config=cfg, on_progress=progress, time_cpu=True)
     on = res.online
     return DriveResult(res.outcomes, on.t, on.T_world_base, on.cov, res.wall_s, res.backend_s, res.backend_cpu_s)
 
