@@ -209,6 +209,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     out["reanchors"] = res.stats.extra.get("reanchors", [])
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
     out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})
+    out["fix_hold"] = res.stats.extra.get("fix_hold", {})  # far fixes held, released, dropped (fgslam.fix_hold)
     out["n_fixes_older_than_window"] = int(res.stats.extra.get("n_fixes_older_than_window", 0))
     # the solver's failures and recoveries (iSAM2: keyframe updates rolled back and retried without
     # their landmark factors, rebuilds, Cholesky -> QR spells): a run that had any is not a clean run

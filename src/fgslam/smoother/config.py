@@ -132,9 +132,9 @@ class FixConfig:
     height_gate_chi2: Positive = 10.83
     gate_distance_m: Positive = 25.0  # hard gate on the position innovation
     cauchy_k: Positive = 2.0  # Cauchy kernel scale on the whitened residual
-    # ... whitened by the innovation's covariance (the estimate's and the fix's) rather than the fix's
-    # alone: a fix inside the gates is not taken for an outlier because the estimate has drifted
-    # (k scaled by Innovation.kernel_scale; without it a smoother 6 m off, knowing it, retracted
+    # ... in the innovation's sigmas (the keyframe's causal covariance and the fix's) rather than the
+    # fix's alone: a fix inside the gates is not taken for an outlier because the estimate has
+    # drifted (k scaled by fixes.kernel_scale; without it a smoother 6 m off, knowing it, retracted
     # every right fix of 0.3 m: tests/fgslam/test_fix_hold.py)
     kernel_on_innovation: bool = True
     retract_chi2: Positive = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)

@@ -13,7 +13,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from fgslam.smoother.factors import cov_world_to_gtsam, make_fix_factor
-from fgslam.smoother.fixes import FixRecord, innovation_d2, place_fix, residual_d2_many
+from fgslam.smoother.fixes import FixRecord, innovation_d2, kernel_scale, place_fix, residual_d2_many
 from fgslam.smoother.solver import SolverUpdateError
 from reloc.backend import FixOutcome
 from reloc.measurements import GlobalFix
@@ -118,8 +118,9 @@ class LateFixes:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
         if d2 > cfg.gate_chi2:
             return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {cfg.gate_chi2:.1f}", d2)
-        if cfg.kernel_on_innovation and inn.kernel_scale > 1.0:  # the kernel in the innovation's sigmas
-            factor = make_fix_factor(X(k), T_rel, applied.measured, cov_res, cfg.cauchy_k * inn.kernel_scale)
+        if cfg.kernel_on_innovation:  # the kernel in the innovation's sigmas (the keyframe's causal covariance)
+            scale = kernel_scale(self.kfs.online_cov(k)[:2, :2], cov_res[:2, :2])
+            factor = make_fix_factor(X(k), T_rel, applied.measured, cov_res, cfg.cauchy_k * scale)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
         idx, failure = self._fix_update(graph)

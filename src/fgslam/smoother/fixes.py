@@ -57,21 +57,22 @@ def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarr
 class Innovation:
     """A fix against the current estimate: ``d2`` the squared Mahalanobis distance of its planar
     part, ``distance_m`` the position innovation, ``height_d2`` that of its height alone (None
-    without one), ``fix_d2`` the planar part's squared distance under the fix's own covariance
-    alone (the estimate's left out: what the fix's factor sees at the current estimate)."""
+    without one)."""
 
     d2: float
     distance_m: float
     height_d2: float | None = None
-    fix_d2: float = float("nan")
 
-    @property
-    def kernel_scale(self) -> float:
-        """How much wider than the fix's own sigmas the innovation's spread is along the residual:
-        ``sqrt(fix_d2 / d2)``, at least 1 (1 when either is not a positive number)."""
-        if not (self.d2 > 0.0 and self.fix_d2 > self.d2):
-            return 1.0
-        return float(np.sqrt(self.fix_d2 / self.d2))
+
+def kernel_scale(cov_est_xy: np.ndarray, cov_fix_xy: np.ndarray) -> float:
+    """How much wider than the fix's own position sigmas the innovation's spread (the estimate's
+    ``cov_est_xy`` (2, 2) plus the fix's ``cov_fix_xy``) is, in the direction where it is most:
+    ``sqrt(1 + lambda_max(cov_fix_xy^-1 cov_est_xy))``. From covariances alone, so a fix's factor
+    is the same whenever it arrives."""
+    L = np.linalg.cholesky(np.asarray(cov_fix_xy, dtype=float))
+    Li = np.linalg.inv(L)
+    lam = float(np.linalg.eigvalsh(Li @ np.asarray(cov_est_xy, dtype=float) @ Li.T)[-1])
+    return float(np.sqrt(1.0 + max(lam, 0.0)))
 
 
 def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarray,
@@ -81,8 +82,7 @@ def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarra
     r, H = fix_residual(T_world_kf, T_kf_meas, fix.measured)
     S = H @ cov_kf_body @ H.T + cov_res
     d2 = float(r[:3] @ np.linalg.solve(S[:3, :3], r[:3]))
-    fix_d2 = float(r[:3] @ np.linalg.solve(cov_res[:3, :3], r[:3]))
-    return Innovation(d2, float(np.hypot(r[0], r[1])), float(r[3] ** 2 / S[3, 3]) if len(r) == 4 else None, fix_d2)
+    return Innovation(d2, float(np.hypot(r[0], r[1])), float(r[3] ** 2 / S[3, 3]) if len(r) == 4 else None)
 
 
 def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarray:
