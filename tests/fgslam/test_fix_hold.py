@@ -12,7 +12,9 @@ import pytest
 from ekf.slam import EkfSlam
 from fgslam.fix_hold import FarFixHold, FixHoldConfig, FixHoldError, OdometryPath, settle
 from fgslam.runner import RunnerConfig
-from fgslam.smoother import Isam2Smoother
+from fgslam.smoother import Isam2Smoother, SmootherConfig
+from fgslam.smoother.config import FixConfig
+from fgslam.smoother.fixes import kernel_scale
 from fgslam.smoother.synthetic import SyntheticConfig, drive, simulate_synthetic
 from reloc.backend import FixOutcome, PoseEstimate
 from reloc.config import config_from_dict
@@ -158,3 +160,26 @@ def test_a_lost_back_end_re_anchors_on_its_first_fix(run):
     be = FarFixHold(make_backend("isam2", start), FixHoldConfig())
     out = drive(be, run.measurements, fixes[:1], hold=FixHoldConfig(beyond_m=0.0))
     assert out.outcomes[0].accepted and out.outcomes[0].reason.startswith("re-anchored")
+
+
+def test_the_kernel_scale_is_the_innovations_spread_over_the_fixs():
+    R = np.diag([0.09, 0.04])
+    assert kernel_scale(np.zeros((2, 2)), R) == pytest.approx(1.0)
+    assert kernel_scale(np.diag([0.27, 0.04]), R) == pytest.approx(2.0)  # x: (0.27 + 0.09) / 0.09 = 4
+    assert kernel_scale(np.diag([0.0, 0.32]), R) == pytest.approx(3.0)  # y: (0.32 + 0.04) / 0.04 = 9
+
+
+@pytest.mark.parametrize("on", [True, False], ids=["kernel-in-innovation-sigmas", "kernel-in-fix-sigmas"])
+def test_a_drifted_smoother_keeps_the_right_fixes(run, on):
+    """Right fixes only, the hold off: the smoother 6.3 m off (3 m sigma) takes them with the
+    kernel in the innovation's sigmas, and retracts every one in the fix's alone."""
+    fixes, wrong = _fixes(run)
+    right = [f for f in fixes if f.t_meas not in wrong]
+    cfg = SmootherConfig(fixes=FixConfig(kernel_on_innovation=on))
+    out = drive(Isam2Smoother(_started_off(run), cfg), run.measurements, right, hold=FixHoldConfig(beyond_m=0.0))
+    if on:
+        assert all(o.accepted for o in out.outcomes), [o.reason for o in out.outcomes]
+        assert _final_error(run, out) < 0.5
+    else:
+        assert all(o.reason.startswith("retracted") for o in out.outcomes), [o.reason for o in out.outcomes]
+        assert _final_error(run, out) > 5.0
