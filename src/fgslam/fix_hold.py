@@ -20,7 +20,8 @@ dead-reckoned path of the odometry steps the back-end was given (:class:`Odometr
 by any correction) and ``psi`` the turn from its frame to the estimate's, two fixes ``F1`` at
 ``t1`` and ``F2`` at ``t2`` agree when ``r = (F2 - F1) - R(psi) (D(t2) - D(t1))`` is inside the
 chi-square gate ``agree_chi2`` (2 dof) of ``C1 + C2 + (drift_fraction s)^2 I + var(yaw) q q^T``:
-the fixes' own position covariances, the odometry's drift over the distance ``s`` driven between
+the fixes' own position covariances (each fix alone: without the correlation factor its producer
+widened it by for fusion, :meth:`reloc.measurements.GlobalFix.split_cov`), the odometry's drift over the distance ``s`` driven between
 them, and the estimate's heading uncertainty swinging the displacement ``d`` (``q`` = ``d``
 turned 90 deg). The fixes' headings are not used: a fix from one identified crater carries
 none worth the name (0.5 rad).
@@ -211,8 +212,7 @@ class FarFixHold(Backend):
         r = np.array([fix.x_m - h.fix.x_m, fix.y_m - h.fix.y_m]) - d
         q = np.array([-d[1], d[0]])
         drift = cfg.drift_fraction * abs(float(odo[3] - h.odo[3]))
-        S = (np.asarray(h.fix.cov_xyyaw)[:2, :2] + np.asarray(fix.cov_xyyaw)[:2, :2]
-             + (drift**2 + cfg.floor_m**2) * np.eye(2) + var_yaw * np.outer(q, q))
+        S = (_alone_xy(h.fix) + _alone_xy(fix) + (drift**2 + cfg.floor_m**2) * np.eye(2) + var_yaw * np.outer(q, q))
         try:
             d2 = float(r @ np.linalg.solve(S, r))
         except np.linalg.LinAlgError:
@@ -224,6 +224,14 @@ class FarFixHold(Backend):
         if old:
             self.counts["dropped"] += len(old)
             self._held = [h for h in self._held if h.fix.t_meas >= t]
+
+
+def _alone_xy(fix: GlobalFix) -> np.ndarray:
+    """(2, 2) position covariance of ``fix`` alone: its match's and the rover-relative part, without
+    the producer's correlation factor (which widens a fix for fusing it beside others it shares
+    errors with, up to 100x on a long route's crater fixes, and would let a wrong fix agree)."""
+    match, rel = fix.split_cov()
+    return (match + rel)[:2, :2]
 
 
 def hold_far_fixes(backend: Backend, config: FixHoldConfig) -> Backend:

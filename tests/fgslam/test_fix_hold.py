@@ -183,3 +183,14 @@ def test_a_drifted_smoother_keeps_the_right_fixes(run, on):
     else:
         assert all(o.reason.startswith("retracted") for o in out.outcomes), [o.reason for o in out.outcomes]
         assert _final_error(run, out) > 5.0
+
+
+def test_agreement_ignores_the_correlation_factor_a_fix_was_widened_by(run):
+    """The same fixes, each widened 50x for fusion beside the others it shares errors with (a long
+    route's crater fixes reach 100x): judged alone, a wrong one still agrees with no right one."""
+    fixes, wrong = _fixes(run)
+    wide = [dataclasses.replace(f, cov_xyyaw=50.0 * f.cov_xyyaw, correlation_scale=50.0) for f in fixes]
+    be = FarFixHold(EkfSlam(_started_off(run)), FixHoldConfig())
+    out = drive(be, run.measurements, wide, hold=FixHoldConfig(beyond_m=0.0))
+    assert not any(o.accepted for o in out.outcomes if o.fix.t_meas in wrong)
+    assert be.stats().extra["fix_hold"]["released"] >= 1
