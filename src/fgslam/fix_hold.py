@@ -20,10 +20,10 @@ dead-reckoned path of the odometry steps the back-end was given (:class:`Odometr
 by any correction) and ``psi`` the turn from its frame to the estimate's, two fixes ``F1`` at
 ``t1`` and ``F2`` at ``t2`` agree when ``r = (F2 - F1) - R(psi) (D(t2) - D(t1))`` is inside the
 chi-square gate ``agree_chi2`` (2 dof) of ``C1 + C2 + (drift_fraction s)^2 I + var(yaw) q q^T``:
-the fixes' own position covariances (each fix alone: without the correlation factor its producer
-widened it by for fusion, :meth:`reloc.measurements.GlobalFix.split_cov`), the odometry's drift over the distance ``s`` driven between
-them, and the estimate's heading uncertainty swinging the displacement ``d`` (``q`` = ``d``
-turned 90 deg). The fixes' headings are not used: a fix from one identified crater carries
+the fixes' own position covariances (each fix alone: without the correlation factor its
+producer widened it by for fusion, :meth:`reloc.measurements.GlobalFix.split_cov`), the
+odometry's drift over the distance ``s`` driven between them, and the estimate's heading
+uncertainty swinging the displacement ``d`` (``q`` = ``d`` turned 90 deg). The fixes' headings are not used: a fix from one identified crater carries
 none worth the name (0.5 rad).
 
 A back-end that is lost (:class:`fgslam.backends.reanchor.Reanchoring` before its first fix)

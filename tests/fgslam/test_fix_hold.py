@@ -167,6 +167,7 @@ def test_the_kernel_scale_is_the_innovations_spread_over_the_fixs():
     assert kernel_scale(np.zeros((2, 2)), R) == pytest.approx(1.0)
     assert kernel_scale(np.diag([0.27, 0.04]), R) == pytest.approx(2.0)  # x: (0.27 + 0.09) / 0.09 = 4
     assert kernel_scale(np.diag([0.0, 0.32]), R) == pytest.approx(3.0)  # y: (0.32 + 0.04) / 0.04 = 9
+    assert kernel_scale(np.eye(2), np.zeros((2, 2))) == 1.0  # no fix covariance to scale by: the kernel as set
 
 
 @pytest.mark.parametrize("on", [True, False], ids=["kernel-in-innovation-sigmas", "kernel-in-fix-sigmas"])

@@ -68,11 +68,13 @@ def kernel_scale(cov_est_xy: np.ndarray, cov_fix_xy: np.ndarray) -> float:
     """How much wider than the fix's own position sigmas the innovation's spread (the estimate's
     ``cov_est_xy`` (2, 2) plus the fix's ``cov_fix_xy``) is, in the direction where it is most:
     ``sqrt(1 + lambda_max(cov_fix_xy^-1 cov_est_xy))``. From covariances alone, so a fix's factor
-    is the same whenever it arrives."""
-    L = np.linalg.cholesky(np.asarray(cov_fix_xy, dtype=float))
-    Li = np.linalg.inv(L)
+    is the same whenever it arrives; 1 when ``cov_fix_xy`` is not positive definite."""
+    try:
+        Li = np.linalg.inv(np.linalg.cholesky(np.asarray(cov_fix_xy, dtype=float)))
+    except np.linalg.LinAlgError:
+        return 1.0
     lam = float(np.linalg.eigvalsh(Li @ np.asarray(cov_est_xy, dtype=float) @ Li.T)[-1])
-    return float(np.sqrt(1.0 + max(lam, 0.0)))
+    return float(np.sqrt(1.0 + max(lam, 0.0))) if np.isfinite(lam) else 1.0
 
 
 def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarray,
