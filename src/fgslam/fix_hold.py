@@ -36,7 +36,6 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +46,7 @@ from reloc.config import NonNegative, Positive, PositiveInt, checked
 from reloc.geometry import wrap_angle, yaw_of
 from reloc.measurements import GlobalFix
 from reloc.odometry import OdometryStep
+from reloc.procrustes import rotation_2d
 
 log = logging.getLogger(__name__)
 
@@ -181,9 +181,7 @@ class FarFixHold(Backend):
         now, then = self.path.at(est.t), self.path.at(fix.t_meas)
         if now is None or then is None:  # no odometry yet, or the fix is older than the path kept
             return self.inner.apply_fix(fix)
-        psi = est.yaw_rad - now[2]  # the odometry's frame -> the estimate's
-        c, s = math.cos(psi), math.sin(psi)
-        R = np.array([[c, -s], [s, c]])
+        R = rotation_2d(est.yaw_rad - now[2])  # the odometry's frame -> the estimate's
         expected = est.position_m[:2] + R @ (then[:2] - now[:2])
         distance = float(np.hypot(*(np.array([fix.x_m, fix.y_m]) - expected)))
         if distance <= cfg.beyond_m:

@@ -124,7 +124,7 @@ def test_without_the_hold_the_drifted_back_end_takes_wrong_fixes(run, make):
     """What the hold is for: the same fixes straight to the back-end's own gates. The first
     wrong one is inside the drifted back-end's covariance and goes in; the right ones are then
     9 m away and refused for the rest of the run."""
-    fixes, wrong = _fixes(run)
+    fixes, _ = _fixes(run)
     out = drive(make(_started_off(run)), run.measurements, fixes, hold=FixHoldConfig(beyond_m=0.0))
     assert out.outcomes[0].fix.t_meas == 12.0 and out.outcomes[0].accepted
     assert _final_error(run, out) > 5.0

@@ -12,8 +12,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from fgslam.smoother.factors import cov_world_to_gtsam, make_fix_factor
-from fgslam.smoother.fixes import FixRecord, innovation_d2, kernel_scale, place_fix, residual_d2_many
+from fgslam.smoother.factors import cov_world_to_gtsam
+from fgslam.smoother.fixes import FixRecord, innovation_d2, place_fix, residual_d2_many
 from fgslam.smoother.solver import SolverUpdateError
 from reloc.backend import FixOutcome
 from reloc.measurements import GlobalFix
@@ -101,7 +101,9 @@ class LateFixes:
         T_rel = self._motion_since_kf(seg, T_rel, fix.t_meas)
         T_kf = self.solver.pose(X(k))
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
-        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor)
+        # the kernel in the innovation's sigmas: the keyframe's causal covariance (fixed when it was added)
+        est_xy = self.kfs.online_cov(k)[:2, :2] if cfg.kernel_on_innovation else None
+        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy)
         if cfg.gate_smoothed_marginal:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
@@ -112,15 +114,12 @@ class LateFixes:
             log.info("fix at t=%.2f: its height refused (d2 %.1f > %.1f); planar part gated", fix.t_meas,
                      inn.height_d2, cfg.height_gate_chi2)
             applied = fix.planar()
-            factor, cov_res = place_fix(applied, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor)
+            factor, cov_res = place_fix(applied, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy)
         d2, dist = inn.d2, inn.distance_m
         if dist > cfg.gate_distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
         if d2 > cfg.gate_chi2:
             return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {cfg.gate_chi2:.1f}", d2)
-        if cfg.kernel_on_innovation:  # the kernel in the innovation's sigmas (the keyframe's causal covariance)
-            scale = kernel_scale(self.kfs.online_cov(k)[:2, :2], cov_res[:2, :2])
-            factor = make_fix_factor(X(k), T_rel, applied.measured, cov_res, cfg.cauchy_k * scale)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
         idx, failure = self._fix_update(graph)

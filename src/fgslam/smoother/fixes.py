@@ -29,10 +29,13 @@ class FixRecord:
 
 
 def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarray,
-              T_world_kf: np.ndarray, cauchy_k: float, yaw_sigma_floor_rad: float = 0.0):
+              T_world_kf: np.ndarray, cauchy_k: float, yaw_sigma_floor_rad: float = 0.0,
+              est_cov_xy: np.ndarray | None = None):
     """Factor and residual covariance (3, 3) for ``fix`` attached to keyframe ``key`` through the
     odometry ``T_kf_meas`` (4, 4) with covariance ``cov_rel`` (6, 6, GTSAM body frame); the fix's
-    yaw sigma is taken as at least ``yaw_sigma_floor_rad``.
+    yaw sigma is taken as at least ``yaw_sigma_floor_rad``. With ``est_cov_xy`` (2, 2, the
+    estimate's planar position covariance) the kernel's scale is ``cauchy_k`` in the innovation's
+    sigmas (:func:`kernel_scale`), else in the fix's.
 
     The odometry part of the covariance is projected with the fix's own heading and the
     estimate's tilt only, so that the factor does not depend on when it arrives (a late fix and
@@ -50,7 +53,8 @@ def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarr
         D[2, 2] = yaw_sigma_floor_rad / np.sqrt(cov_fix[2, 2])
         cov_fix = D @ cov_fix @ D
     cov = fix_covariance(T_proj, cov_rel, cov_fix)
-    return make_fix_factor(key, T_kf_meas, fix.measured, cov, cauchy_k), cov
+    k = cauchy_k if est_cov_xy is None else cauchy_k * kernel_scale(est_cov_xy, cov[:2, :2])
+    return make_fix_factor(key, T_kf_meas, fix.measured, cov, k), cov
 
 
 @dataclass(frozen=True)
