@@ -204,8 +204,10 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     out["fixes"]["heights"]["refused"] = int(res.stats.extra.get("n_heights_refused", 0))
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
     out["fixes"]["attempts_by_status"] = attempts_by_status(attempts)
-    first = next((o.fix for o in res.outcomes if o.accepted), None)  # time to first fix: measured, received
-    out["fixes"]["first_fix_s"] = None if first is None else [first.t_meas - res.t_start, first.t_recv - res.t_start]
+    # time to first fix: when it was measured, and when the back-end was given it (a held fix waits)
+    first = min((o for o in res.outcomes if o.accepted), key=lambda o: o.applied_s, default=None)
+    out["fixes"]["first_fix_s"] = (None if first is None else
+                                   [first.fix.t_meas - res.t_start, first.applied_s - res.t_start])
     out["reanchors"] = res.stats.extra.get("reanchors", [])
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
     out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})

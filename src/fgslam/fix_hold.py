@@ -131,6 +131,7 @@ class FarFixHold(Backend):
         self.path = OdometryPath(self.hold.max_age_s + 60.0)
         self._held: list[_Held] = []
         self.counts = {"held": 0, "released": 0, "dropped": 0}
+        self.waits_s: list[float] = []  # how long each released fix waited for its second
 
     @property
     def name(self) -> str:
@@ -170,7 +171,9 @@ class FarFixHold(Backend):
 
     def stats(self) -> BackendStats:
         s = self.inner.stats()
-        return dataclasses.replace(s, extra={**s.extra, "fix_hold": {**self.counts, "waiting": len(self._held)}})
+        return dataclasses.replace(s, extra={**s.extra, "fix_hold": {
+            **self.counts, "waiting": len(self._held),
+            "wait_s_max": max(self.waits_s, default=0.0), "wait_s_median": float(np.median(self.waits_s)) if self.waits_s else 0.0}})
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         cfg = self.hold
@@ -201,7 +204,9 @@ class FarFixHold(Backend):
         self.counts["released"] += len(agreeing)
         log.info("fix at t=%.2f (%.1f m from the estimate) agrees with %d held: applied together",
                  fix.t_meas, distance, len(agreeing))
-        released = tuple(self.inner.apply_fix(h.fix) for h in sorted(agreeing, key=lambda h: h.fix.t_meas))
+        released = tuple(dataclasses.replace(self.inner.apply_fix(h.fix), t_applied=fix.t_recv)
+                         for h in sorted(agreeing, key=lambda h: h.fix.t_meas))
+        self.waits_s.extend(fix.t_recv - h.fix.t_recv for h in agreeing)
         return dataclasses.replace(self.inner.apply_fix(fix), released=released)
 
     def _agree(self, h: _Held, fix: GlobalFix, odo: np.ndarray, R: np.ndarray, var_yaw: float) -> bool:

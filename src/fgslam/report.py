@@ -76,7 +76,7 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
         row("Fix attempts", lambda s: fx(s)["attempts"], "{:d}")
         row("Fixes", lambda s: fx(s)["fixes"], "{:d}")
         row("Fix rate [Hz]", lambda s: fx(s)["rate_hz"], "{:.3f}")
-        row("Time to first fix (measured / received) [s]",
+        row("Time to first fix (measured / applied) [s]",
             lambda s: "{:.1f} / {:.1f}".format(*s["runs"][ref]["fixes"]["first_fix_s"]), "{}")
         row("Fix position error median [m]", lambda s: fx(s)["position_error_m"]["median"])
         row("Fix position error mean [m]", lambda s: fx(s)["position_error_m"]["mean"])

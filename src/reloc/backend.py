@@ -114,6 +114,8 @@ class FixOutcome:
     "older than history"); ``mahalanobis_d2`` is the fix innovation's squared Mahalanobis distance
     when it was computed. ``released``: the outcomes of earlier fixes that were held and went to
     the back-end with this one (:mod:`fgslam.fix_hold`), each replacing that fix's held outcome.
+    ``t_applied``: when the back-end was given the fix (stream time), set where it waited (a held
+    fix: the ``t_recv`` of the fix that released it); :attr:`applied_s` reads it.
     """
 
     fix: GlobalFix
@@ -121,6 +123,12 @@ class FixOutcome:
     reason: str = ""
     mahalanobis_d2: float = float("nan")
     released: tuple[FixOutcome, ...] = ()
+    t_applied: float | None = None
+
+    @property
+    def applied_s(self) -> float:
+        """When the back-end was given the fix: ``t_applied``, or the fix's ``t_recv`` if it did not wait."""
+        return self.fix.t_recv if self.t_applied is None else self.t_applied
 
 
 @dataclass(frozen=True)

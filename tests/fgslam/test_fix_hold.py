@@ -114,6 +114,7 @@ def test_a_drifted_back_end_takes_the_right_far_fixes_and_none_of_the_wrong(run,
     assert all(by_t[t].reason.startswith("held") for t in wrong)
     first, second = by_t[20.0], by_t[30.0]
     assert first.accepted and second.accepted, (first.reason, second.reason)  # 6.3 m off: held, then agreed
+    assert first.applied_s == second.fix.t_recv and second.applied_s == second.fix.t_recv  # it waited 10 s
     right = [o for t, o in by_t.items() if t not in wrong]
     assert sum(o.accepted for o in right) >= len(right) - 1
     assert _final_error(run, out) < 0.5
@@ -136,7 +137,8 @@ def test_a_fix_near_the_estimate_goes_straight_to_the_back_end(run):
     be = FarFixHold(Isam2Smoother(run.initial_pose), FixHoldConfig())
     out = drive(be, run.measurements, right, hold=FixHoldConfig(beyond_m=0.0))
     assert all(o.accepted for o in out.outcomes), [o.reason for o in out.outcomes]
-    assert be.stats().extra["fix_hold"] == {"held": 0, "released": 0, "dropped": 0, "waiting": 0}
+    assert be.stats().extra["fix_hold"] == {"held": 0, "released": 0, "dropped": 0, "waiting": 0,
+                                            "wait_s_max": 0.0, "wait_s_median": 0.0}
 
 
 def test_a_held_fix_no_second_agrees_with_is_dropped_after_max_age(run):
