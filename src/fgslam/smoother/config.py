@@ -137,6 +137,11 @@ class FixConfig:
     # drifted (k scaled by fixes.kernel_scale; without it a smoother 6 m off, knowing it, retracted
     # every right fix of 0.3 m: tests/fgslam/test_fix_hold.py)
     kernel_on_innovation: bool = True
+    # ... only beyond an estimate this many times as uncertain as the fix (in sigma): below it the
+    # scale stays cauchy_k in the fix's sigmas, which down-weights a confident fix's own error the
+    # most (on sparse-5km seeds 1 and 2 the whole-ratio scale moved the heading by fixes the kernel
+    # had tempered, and the drift after them grew: docs/smoother.md); 0: the whole ratio
+    kernel_widen_above: NonNegative = 3.0
     retract_chi2: Positive = 16.27  # post-optimisation residual above this -> fix removed (3 dof, 0.999)
     retract_chi2_with_height: Positive = 18.47  # ... for a fix with a height (4 dof, 0.999)
     max_age_s: Positive = 60.0  # odometry history kept to place late fixes

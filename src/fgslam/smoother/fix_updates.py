@@ -103,7 +103,8 @@ class LateFixes:
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
         # the kernel in the innovation's sigmas: the keyframe's causal covariance (fixed when it was added)
         est_xy = self.kfs.online_cov(k)[:2, :2] if cfg.kernel_on_innovation else None
-        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy)
+        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy,
+                                   cfg.kernel_widen_above)
         if cfg.gate_smoothed_marginal:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free

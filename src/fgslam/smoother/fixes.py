@@ -30,12 +30,13 @@ class FixRecord:
 
 def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarray,
               T_world_kf: np.ndarray, cauchy_k: float, yaw_sigma_floor_rad: float = 0.0,
-              est_cov_xy: np.ndarray | None = None):
+              est_cov_xy: np.ndarray | None = None, kernel_above: float = 0.0):
     """Factor and residual covariance (3, 3) for ``fix`` attached to keyframe ``key`` through the
     odometry ``T_kf_meas`` (4, 4) with covariance ``cov_rel`` (6, 6, GTSAM body frame); the fix's
     yaw sigma is taken as at least ``yaw_sigma_floor_rad``. With ``est_cov_xy`` (2, 2, the
     estimate's planar position covariance) the kernel's scale is ``cauchy_k`` in the innovation's
-    sigmas (:func:`kernel_scale`), else in the fix's.
+    sigmas (:func:`kernel_scale`, beyond an estimate ``kernel_above`` times as uncertain as the
+    fix), else in the fix's.
 
     The odometry part of the covariance is projected with the fix's own heading and the
     estimate's tilt only, so that the factor does not depend on when it arrives (a late fix and
@@ -53,7 +54,7 @@ def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarr
         D[2, 2] = yaw_sigma_floor_rad / np.sqrt(cov_fix[2, 2])
         cov_fix = D @ cov_fix @ D
     cov = fix_covariance(T_proj, cov_rel, cov_fix)
-    k = cauchy_k if est_cov_xy is None else cauchy_k * kernel_scale(est_cov_xy, cov[:2, :2])
+    k = cauchy_k if est_cov_xy is None else cauchy_k * kernel_scale(est_cov_xy, cov[:2, :2], kernel_above)
     return make_fix_factor(key, T_kf_meas, fix.measured, cov, k), cov
 
 
@@ -68,17 +69,21 @@ class Innovation:
     height_d2: float | None = None
 
 
-def kernel_scale(cov_est_xy: np.ndarray, cov_fix_xy: np.ndarray) -> float:
+def kernel_scale(cov_est_xy: np.ndarray, cov_fix_xy: np.ndarray, above: float = 0.0) -> float:
     """How much wider than the fix's own position sigmas the innovation's spread (the estimate's
-    ``cov_est_xy`` (2, 2) plus the fix's ``cov_fix_xy``) is, in the direction where it is most:
-    ``sqrt(1 + lambda_max(cov_fix_xy^-1 cov_est_xy))``. From covariances alone, so a fix's factor
-    is the same whenever it arrives; 1 when ``cov_fix_xy`` is not positive definite."""
+    ``cov_est_xy`` (2, 2) plus the fix's ``cov_fix_xy``) is, in the direction where it is most,
+    beyond the spread of an estimate ``above`` times as uncertain as the fix:
+    ``max(1, sqrt((1 + lambda_max(cov_fix_xy^-1 cov_est_xy)) / (1 + above^2)))`` (``above`` 0: the
+    whole ratio). From covariances alone, so a fix's factor is the same whenever it arrives; 1 when
+    ``cov_fix_xy`` is not positive definite."""
     try:
         Li = np.linalg.inv(np.linalg.cholesky(np.asarray(cov_fix_xy, dtype=float)))
     except np.linalg.LinAlgError:
         return 1.0
     lam = float(np.linalg.eigvalsh(Li @ np.asarray(cov_est_xy, dtype=float) @ Li.T)[-1])
-    return float(np.sqrt(1.0 + max(lam, 0.0))) if np.isfinite(lam) else 1.0
+    if not np.isfinite(lam):
+        return 1.0
+    return float(max(1.0, np.sqrt((1.0 + max(lam, 0.0)) / (1.0 + above**2))))
 
 
 def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarray,
