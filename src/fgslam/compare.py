@@ -38,7 +38,7 @@ from fgslam.passes import Pass, run_passes
 from fgslam.relocalizer import FixAttempt, RelocalizerConfig
 from fgslam.runner import RunnerConfig, RunResult
 from fgslam.terrain_height import TerrainHeightConfig, with_heights
-from reloc.backend import Trajectory
+from reloc.backend import FixOutcome, Trajectory
 from reloc.config import Positive, PositiveInt, checked
 
 log = logging.getLogger(__name__)
@@ -170,6 +170,13 @@ def attempts_by_status(attempts: list[FixAttempt]) -> dict[str, dict[str, int]]:
     return out
 
 
+def first_fix_s(outcomes: list[FixOutcome], t_start: float) -> list[float] | None:
+    """Time to first fix, [measured, applied] seconds after ``t_start``: the accepted fix the
+    back-end was given first (a held fix counts from when its second released it); None if none."""
+    first = min((o for o in outcomes if o.accepted), key=lambda o: o.applied_s, default=None)
+    return None if first is None else [first.fix.t_meas - t_start, first.applied_s - t_start]
+
+
 def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt], rpe_delta_m: float) -> dict:
     """All metrics of one run as a JSON-ready dict (accuracy only with ground truth)."""
     out: dict = {
@@ -204,10 +211,7 @@ def run_metrics(res: RunResult, gt: Trajectory | None, attempts: list[FixAttempt
     out["fixes"]["heights"]["refused"] = int(res.stats.extra.get("n_heights_refused", 0))
     out["fixes"]["tracked"] = sum(1 for a in attempts if a.fix is not None and a.tracked)
     out["fixes"]["attempts_by_status"] = attempts_by_status(attempts)
-    # time to first fix: when it was measured, and when the back-end was given it (a held fix waits)
-    first = min((o for o in res.outcomes if o.accepted), key=lambda o: o.applied_s, default=None)
-    out["fixes"]["first_fix_s"] = (None if first is None else
-                                   [first.fix.t_meas - res.t_start, first.applied_s - res.t_start])
+    out["fixes"]["first_fix_s"] = first_fix_s(res.outcomes, res.t_start)
     out["reanchors"] = res.stats.extra.get("reanchors", [])
     out["fix_rejections"] = sorted({o.reason for o in res.outcomes if not o.accepted})
     out["fix_reject_reasons"] = res.stats.extra.get("fix_reject_reasons", {})

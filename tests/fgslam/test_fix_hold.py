@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from ekf.slam import EkfSlam
+from fgslam.compare import first_fix_s
 from fgslam.fix_hold import FarFixHold, FixHoldConfig, FixHoldError, OdometryPath, settle
 from fgslam.runner import RunnerConfig
 from fgslam.smoother import Isam2Smoother, SmootherConfig
@@ -52,6 +53,15 @@ def test_settle_puts_a_released_outcome_in_place_of_the_held_one():
     assert [o.fix for o in out] == [f1, f2, f3]
     assert all(o.accepted for o in out) and not out[2].released
     assert [o.fix for o in decided] == [f1, f3]
+
+
+def test_time_to_first_fix_counts_a_held_fixs_wait():
+    cov = np.diag([0.1, 0.1, 0.01])
+    held, second, later = (GlobalFix(t, t + 2.0, 0.0, 0.0, 0.0, cov) for t in (10.0, 20.0, 30.0))
+    outcomes = [FixOutcome(held, True, t_applied=22.0), FixOutcome(second, True), FixOutcome(later, True)]
+    assert first_fix_s(outcomes, 5.0) == [5.0, 17.0]  # measured at 10 s, given to the back-end at 22 s
+    assert first_fix_s([FixOutcome(held, False, "held"), FixOutcome(later, True)], 5.0) == [25.0, 27.0]
+    assert first_fix_s([FixOutcome(held, False, "held")], 5.0) is None
 
 
 def test_the_config_is_checked():
