@@ -171,9 +171,11 @@ class FarFixHold(Backend):
 
     def stats(self) -> BackendStats:
         s = self.inner.stats()
-        return dataclasses.replace(s, extra={**s.extra, "fix_hold": {
-            **self.counts, "waiting": len(self._held),
-            "wait_s_max": max(self.waits_s, default=0.0), "wait_s_median": float(np.median(self.waits_s)) if self.waits_s else 0.0}})
+        waits = np.asarray(self.waits_s, dtype=float)
+        hold = {**self.counts, "waiting": len(self._held),
+                "wait_s_max": float(waits.max()) if waits.size else 0.0,
+                "wait_s_median": float(np.median(waits)) if waits.size else 0.0}
+        return dataclasses.replace(s, extra={**s.extra, "fix_hold": hold})
 
     def apply_fix(self, fix: GlobalFix) -> FixOutcome:
         cfg = self.hold

@@ -180,7 +180,7 @@ def test_the_kernel_scale_is_the_innovations_spread_over_the_fixs():
     assert kernel_scale(np.diag([0.27, 0.04]), R) == pytest.approx(2.0)  # x: (0.27 + 0.09) / 0.09 = 4
     assert kernel_scale(np.diag([0.0, 0.32]), R) == pytest.approx(3.0)  # y: (0.32 + 0.04) / 0.04 = 9
     assert kernel_scale(np.eye(2), np.zeros((2, 2))) == 1.0  # no fix covariance to scale by: the kernel as set
-    # beyond an estimate 3x as uncertain as the fix only: (1 + 9 * 11) / (1 + 3^2) = 10; 1 up to it
+    # beyond an estimate 3x as uncertain as the fix only: y: lambda 99, (1 + 99) / (1 + 3^2) = 10; 1 up to it
     assert kernel_scale(np.diag([0.0, 0.04 * 99.0]), R, above=3.0) == pytest.approx(np.sqrt(10.0))
     assert kernel_scale(np.diag([0.0, 0.04 * 9.0]), R, above=3.0) == pytest.approx(1.0)
     assert kernel_scale(np.diag([0.0, 0.04 * 4.0]), R, above=3.0) == 1.0
