@@ -23,8 +23,8 @@ chi-square gate ``agree_chi2`` (2 dof) of ``C1 + C2 + (drift_fraction s)^2 I + v
 the fixes' own position covariances (each fix alone: without the correlation factor its
 producer widened it by for fusion, :meth:`reloc.measurements.GlobalFix.split_cov`), the
 odometry's drift over the distance ``s`` driven between them, and the estimate's heading
-uncertainty swinging the displacement ``d`` (``q`` = ``d`` turned 90 deg). The fixes' headings are not used: a fix from one identified crater carries
-none worth the name (0.5 rad).
+uncertainty swinging the displacement ``d`` (``q`` = ``d`` turned 90 deg). The fixes' headings
+are not used: a fix from one identified crater carries none worth the name (0.5 rad).
 
 A back-end that is lost (:class:`fgslam.backends.reanchor.Reanchoring` before its first fix)
 takes every fix as it comes: its re-anchoring is the relocalizer's whole-catalog search's to

@@ -103,8 +103,10 @@ class LateFixes:
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
         # the kernel in the innovation's sigmas: the keyframe's causal covariance (fixed when it was added)
         est_xy = self.kfs.online_cov(k)[:2, :2] if cfg.kernel_on_innovation else None
-        factor, cov_res = place_fix(fix, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy,
-                                   cfg.kernel_widen_above)
+        def place(f: GlobalFix):  # the same placement and kernel for the fix and its planar part
+            return place_fix(f, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy, cfg.kernel_widen_above)
+
+        factor, cov_res = place(fix)
         if cfg.gate_smoothed_marginal:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
@@ -115,7 +117,7 @@ class LateFixes:
             log.info("fix at t=%.2f: its height refused (d2 %.1f > %.1f); planar part gated", fix.t_meas,
                      inn.height_d2, cfg.height_gate_chi2)
             applied = fix.planar()
-            factor, cov_res = place_fix(applied, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy)
+            factor, cov_res = place(applied)
         d2, dist = inn.d2, inn.distance_m
         if dist > cfg.gate_distance_m:
             return FixOutcome(fix, False, f"distance gate {dist:.1f} m > {cfg.gate_distance_m:.1f} m", d2)
