@@ -101,6 +101,14 @@ class FixGateConfig:
     consensus_window_s: Positive = 30.0
     consensus_tol_m: Positive = 0.3
     consensus_tol_deg: Positive = 2.0
+    # With the fix's source offset a state (correlation_model "bias"), what a consensus opens. The
+    # rejected fixes agree with each other either because the pose is wrong (an unmodelled slip
+    # burst) or because they share an error larger than modelled (a match whose covariance is
+    # short in one place: on my2021 at 116-142 s, yaw 54 mrad off against a 12 mrad sigma, 16
+    # rocks); the filter cannot tell which, so by default both the pose and the source's offset
+    # ("pose_and_offset": the landmarks and the next fixes on other catalog entries decide);
+    # "pose" or "offset" alone (docs/ekf.md, "Correlated fixes"). Without an offset state, the pose.
+    consensus_opens: Literal["pose", "offset", "pose_and_offset"] = "pose_and_offset"
 
     def distance_limit_m(self, S_xy) -> float:
         """The distance gate for a planar innovation of covariance ``S_xy`` (2, 2):

@@ -152,7 +152,7 @@ class EkfSlam(Backend):
         self._applied: GlobalFix | None = None  # the last fix as _gate_and_apply applied it
         self._count["n_first_estimate_resets"] = 0  # pose corrections beyond first_estimate_tol_m
         self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
-        self._reset_Q: dict[tuple, np.ndarray] = {}  # inflation applied with each consensus fix (for replays)
+        self._reset_Q: dict[tuple, np.ndarray] = {}  # x, y, yaw variances a consensus fix opened (for replays)
         self._record()
         self._hist.checkpoint(self._s, len(self._traj))
 
@@ -457,22 +457,24 @@ class EkfSlam(Backend):
                 return FixOutcome(fix, False, f"yaw gate {abs(math.degrees(nu[2])):.1f} deg > {gate.yaw_deg:.1f} deg")
         d2 = float(nu[:3] @ np.linalg.solve(S, nu[:3]))  # the planar part: the height was gated above
         key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
+        opened = None  # the consensus inflation (x, y, yaw variances) applied with this fix
         if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again
-            s.P[:POSE_DIM, :POSE_DIM] += self._reset_Q[key]
+            opened = self._reset_Q[key]
         elif not force and not d2 <= gate.chi2:
             if not self._consensus(fix.t_meas, nu[:3]):
                 return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {gate.chi2:.2f}", d2)
-            # the rejected fixes agree with each other: open the pose covariance by the innovation
-            log.info("t_meas=%.1f s: %d consistent fixes rejected, pose covariance inflated by the innovation "
-                     "(%.2f m, %.1f deg)", fix.t_meas, gate.consensus_n, math.hypot(nu[0], nu[1]), math.degrees(nu[2]))
-            Q = np.zeros((POSE_DIM, POSE_DIM))
-            Q[0, 0], Q[1, 1], Q[5, 5] = nu[0] ** 2, nu[1] ** 2, nu[2] ** 2
-            s.P[:POSE_DIM, :POSE_DIM] += Q
-            self._reset_Q[key] = Q
+            # the rejected fixes agree with each other: open the covariance by the innovation
+            log.info("t_meas=%.1f s: %d consistent fixes rejected, covariance (%s) inflated by the innovation "
+                     "(%.2f m, %.1f deg)", fix.t_meas, gate.consensus_n, self._opens(bias), math.hypot(nu[0], nu[1]),
+                     math.degrees(nu[2]))
+            opened = nu[:3] ** 2
+            self._reset_Q[key] = opened
             self._gate_rejects.clear()
             self._count["n_consensus_resets"] += 1
         if bias is not None:
             bias.propagate(s)
+        if opened is not None:
+            self._open(opened, bias)
         s.fix_last_xy = {**s.fix_last_xy, fix.source: (float(s.p_world[0]), float(s.p_world[1]))}  # where, by the estimate
         s.fix_last_rows = {**s.fix_last_rows, fix.source: fix.catalog_rows}
         s.P, res = joseph_update(s.P, cols, H, nu, R_fix)
@@ -538,6 +540,21 @@ class EkfSlam(Backend):
             return fix.cov
         n_recent = sum(1 for t in s.fix_times if fix.t_meas - gate.correlation_s <= t <= fix.t_meas)
         return fix.cov * (1.0 + n_recent)
+
+    def _opens(self, bias: _FixBias | None) -> str:
+        """What a consensus opens: the pose, or with the fix's source offset a state
+        (``correlation_model`` "bias") ``fix_gate.consensus_opens``."""
+        return "pose" if bias is None else self.config.fix_gate.consensus_opens
+
+    def _open(self, var_xyyaw: np.ndarray, bias: _FixBias | None) -> None:
+        """Add the consensus inflation ``var_xyyaw`` (3,) to the pose's x, y, yaw variances and/or
+        to the fix source's offset (:meth:`_opens`)."""
+        s, what = self._s, self._opens(bias)
+        if what in ("pose", "pose_and_offset"):
+            i = np.array([0, 1, 5])
+            s.P[i, i] += var_xyyaw
+        if what in ("offset", "pose_and_offset"):
+            s.P[bias.fcols, bias.fcols] += var_xyyaw
 
     def _consensus(self, t_meas: float, nu: np.ndarray) -> bool:
         """Record a Mahalanobis rejection; True when it completes a consistent set (see FixGateConfig)."""

@@ -158,14 +158,16 @@ def _feed_truth_fixes(ekf, run, every: int, delay_steps: int):
     return outcomes
 
 
-def test_consistent_rejected_fixes_reopen_an_overconfident_filter(run):
+@pytest.mark.parametrize("correlation_model", ["producer", "bias"])
+def test_consistent_rejected_fixes_reopen_an_overconfident_filter(run, correlation_model):
     """Started 1.5 m off with a 1 cm sigma, the filter rejects the first fixes at the Mahalanobis
-    gate; once three of them agree it inflates its pose covariance and follows them. With the
-    recovery disabled it stays wrong."""
+    gate; once three of them agree it inflates its pose covariance (with the fixes' shared offset
+    a state, the offset's too) and follows them. With the recovery disabled it stays wrong."""
     fixes_every, delay = 30, 15
-    on = EkfSlam(_offset_start(run, 1.5))
+    gate = dataclasses.replace(EkfConfig().fix_gate, correlation_model=correlation_model)
+    on = EkfSlam(_offset_start(run, 1.5), dataclasses.replace(EkfConfig(), fix_gate=gate))
     out_on = _feed_truth_fixes(on, run, fixes_every, delay)
-    off_cfg = dataclasses.replace(EkfConfig(), fix_gate=dataclasses.replace(EkfConfig().fix_gate, consensus_n=0))
+    off_cfg = dataclasses.replace(EkfConfig(), fix_gate=dataclasses.replace(gate, consensus_n=0))
     off = EkfSlam(_offset_start(run, 1.5), off_cfg)
     out_off = _feed_truth_fixes(off, run, fixes_every, delay)
     assert not any(o.accepted for o in out_off)
