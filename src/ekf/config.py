@@ -81,8 +81,10 @@ class FixGateConfig:
     # Gauss-Markov along the distance between that source's fixes (correlation length
     # correlation_length_m), stationary covariance bias_share x the fix's match covariance; the
     # rest of it and the rover-relative part are the fix's white noise (correlation_s does not
-    # apply to it). A fix from another source is taken as it came.
-    correlation_model: Literal["producer", "distance", "bias"] = "producer"
+    # apply to it). A fix from another source is taken as it came. "bias" is the default since
+    # 2026-12-07 (lower ATE on the three kilometre worlds' first 500 m and on three yards of four,
+    # position NEES nearer 2; my2021 0.026 -> 0.039 m: docs/ekf.md).
+    correlation_model: Literal["producer", "distance", "bias"] = "bias"
     correlation_length_m: Positive = 15.0  # the fixes' error correlation measured on rocky-1km (docs/app.md)
     bias_sources: tuple[str, ...] = ("rocks", "craters")
     bias_share: Annotated[float, Interval(gt=0, lt=1)] = 0.9

@@ -110,10 +110,13 @@ class EkfSlam(Backend):
         slip_col = scalar_state(cfg.slip_sigma > 0, cfg.slip_sigma)
         slope_col = scalar_state(slip_col >= 0 and cfg.slope_slip_sigma_per_rad > 0, cfg.slope_slip_sigma_per_rad)
         gm_col = scalar_state(slip_col >= 0 and cfg.slip_gm_sigma > 0, cfg.slip_gm_sigma)
-        fix_bias_cols = {}  # the fixes' shared error per source: zero until its first fix (FixGateConfig)
+        # the fixes' shared error per source (FixGateConfig): zero until its first fix, which
+        # replaces its covariance (rho = 0 there); until then a unit variance, uncorrelated, keeps
+        # the covariance positive definite
+        fix_bias_cols = {}
         if cfg.fix_gate.correlation_model == "bias":
             for src in dict.fromkeys(cfg.fix_gate.bias_sources):
-                xyyaw_cols = [scalar_state(True, 0.0) for _ in range(3)]
+                xyyaw_cols = [scalar_state(True, 1.0) for _ in range(3)]
                 fix_bias_cols[src] = xyyaw_cols[0]
         self._s = FilterState(
             t=float(initial.t),

@@ -17,5 +17,6 @@ def test_bench_ekf_cost_curve_writes_results(tmp_path):
     res = json.loads((tmp_path / "results.json").read_text())
     points = {p["n_landmarks"]: p for p in res["cost_curve"]}
     assert set(points) == {0, 25}
-    assert points[25]["state_dim"] == 6 + 2 + 3 * 25  # pose, the yaw-rate bias and the slip, the landmarks
+    # pose, the yaw-rate bias and the slip, the rock and crater fixes' shared offsets, the landmarks
+    assert points[25]["state_dim"] == 6 + 2 + 2 * 3 + 3 * 25
     assert 0 < points[0]["predict_ms"] < 50 and 0 < points[25]["frame_ms"] < 500

@@ -63,10 +63,11 @@ def test_rotation_and_scale_are_recovered_and_the_filter_stays_consistent(run):
 
 
 def test_off_by_default_and_bad_sigmas_rejected():
+    offsets = 3 * len(EkfConfig().fix_gate.bias_sources)  # the fix sources' shared (x, y, yaw) errors
     ekf = EkfSlam(START)
-    assert ekf.calibration() == {} and ekf.state_vector_size == 6 + 2  # the pose, the yaw-rate bias, the slip
-    assert EkfSlam(START, EkfConfig(calibration=CalibrationConfig(scale_sigma=0.01))).state_vector_size == 12
-    assert EkfSlam(START, EkfConfig(yaw_rate_bias_sigma_radps=0.0, slip_sigma=0.0)).state_vector_size == 6
+    assert ekf.calibration() == {} and ekf.state_vector_size == 6 + 2 + offsets  # the pose, the yaw-rate bias, the slip
+    assert EkfSlam(START, EkfConfig(calibration=CalibrationConfig(scale_sigma=0.01))).state_vector_size == 12 + offsets
+    assert EkfSlam(START, EkfConfig(yaw_rate_bias_sigma_radps=0.0, slip_sigma=0.0)).state_vector_size == 6 + offsets
     with pytest.raises(ConfigError, match="yaw_sigma_deg must be >= 0"):
         CalibrationConfig(yaw_sigma_deg=-1.0)
     with pytest.raises(ConfigError, match="scale_sigma must be finite"):

@@ -56,6 +56,8 @@ def _trial(run, cfg: EkfConfig, seed: int) -> np.ndarray:
 
 
 def _gate(**kw) -> EkfConfig:
+    """No gate, no consensus; the fixes as they came (``producer``) unless ``kw`` says otherwise."""
+    kw.setdefault("correlation_model", "producer")
     return EkfConfig(yaw_rate_bias_sigma_radps=0.0,
                      fix_gate=dataclasses.replace(EkfConfig().fix_gate, chi2=1e9, consensus_n=0, **kw))
 

@@ -166,7 +166,7 @@ def test_map_hygiene_and_bound(run):
     cfg = EkfConfig(max_landmarks=10)
     ekf = fed(run, None, cfg)
     st = ekf.stats()
-    assert ekf.state_vector_size <= 6 + 2 + 3 * 10  # pose, yaw-rate bias, slip, at most 10 landmarks
+    assert ekf.state_vector_size <= 6 + 2 + 2 * 3 + 3 * 10  # pose, yaw-rate bias, slip, 2 fix offsets, <= 10 landmarks
     assert st.extra["n_evicted"] > 0
     m = ekf.landmark_map("rocks")
     assert len(m) <= 10 and np.all(m.n_obs >= cfg.book.confirm_n_obs)
