@@ -89,8 +89,9 @@ def test_the_ekf_crater_update_is_the_kalman_update_of_numerical_jacobians():
     T0[:3, :3] = exp_so3(np.array([0.02, -0.01, 0.4]))
     T0[:3, 3] = [10.0, -4.0, 1.0]
     est = PoseEstimate(0.0, T0, np.diag([0.3, 0.3, 0.05, 1e-3, 1e-3, 4e-3]))
-    # the pose and the landmark only (no yaw-rate bias or slip states: the measurement does not see them)
-    be = make_backend("ekf", est, {"yaw_rate_bias_sigma_radps": 0.0, "slip_sigma": 0.0})
+    # the pose and the landmark only (no yaw-rate bias, slip or fix offset states: the measurement does not see them)
+    be = make_backend("ekf", est, {"yaw_rate_bias_sigma_radps": 0.0, "slip_sigma": 0.0,
+                                   "fix_gate": {"correlation_model": "producer"}})
     z1 = np.array([15.0, 2.0, -0.6])
     cov1 = _partial_rim_cov(z1)
     obs1 = CraterObservations(0.0, z1[None], cov1[None], [6.0], [0.3], [0.3], [0.9])
