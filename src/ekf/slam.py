@@ -316,6 +316,15 @@ class EkfSlam(Backend):
         if self._s.has_slip_gm:
             k = self._s.gm_col
             extra["slip_gm"] = {"estimate": round(self._s.slip_gm, 5), "sigma": round(math.sqrt(self._s.P[k, k]), 5)}
+        offsets = {}  # the fixes' shared errors (correlation_model "bias"), of the sources that sent a fix
+        for src, col in self._s.fix_bias_cols.items():
+            if src in self._s.fix_last_rows:
+                f, sig = self._s.fix_bias[src], np.sqrt(np.diagonal(self._s.P)[col:col + 3])
+                offsets[src] = {"x_m": round(float(f[0]), 4), "y_m": round(float(f[1]), 4),
+                                "yaw_deg": round(math.degrees(f[2]), 4), "sigma_x_m": round(float(sig[0]), 4),
+                                "sigma_y_m": round(float(sig[1]), 4), "sigma_yaw_deg": round(math.degrees(sig[2]), 4)}
+        if offsets:
+            extra["fix_offset"] = offsets
         return BackendStats(
             n_predict=c["n_predict"], n_landmark_frames=c["n_landmark_frames"],
             n_fixes_accepted=c["n_fixes_accepted"], n_fixes_rejected=c["n_fixes_rejected"],

@@ -138,6 +138,10 @@ def test_a_consensus_on_a_shared_offset_opens_the_offset_as_well_as_the_pose(see
         assert ekf.stats().extra["n_consensus_resets"] == 1
         est = ekf.estimate()
         ends[opens] = (float(yaw_of(est.T_world_base) - yaw_of(run.truth_R[-1])), float(np.sqrt(est.cov[5, 5])))
+        offsets = ekf.stats().extra["fix_offset"]
+        assert set(offsets) == {"rocks"}  # the craters sent no fix
+        # the fixes agree with pose + offset: what the pose did not take, the offset did
+        assert np.radians(offsets["rocks"]["yaw_deg"]) == pytest.approx(off - ends[opens][0], abs=0.01)
     e_pose, s_pose = ends["pose"]
     assert abs(e_pose) > 0.4 * off and abs(e_pose) > 3.0 * s_pose  # the pose took the offset, and is sure of it
     e_both, s_both = ends["pose_and_offset"]
