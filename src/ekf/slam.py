@@ -155,7 +155,7 @@ class EkfSlam(Backend):
         self._applied: GlobalFix | None = None  # the last fix as _gate_and_apply applied it
         self._count["n_first_estimate_resets"] = 0  # pose corrections beyond first_estimate_tol_m
         self._gate_rejects: list[tuple[float, np.ndarray]] = []  # (t_meas, innovation) of Mahalanobis rejections
-        self._reset_Q: dict[tuple, np.ndarray] = {}  # x, y, yaw variances a consensus fix opened (for replays)
+        self._consensus_opened: dict[tuple, np.ndarray] = {}  # x, y, yaw variances a consensus fix opened (for replays)
         self._record()
         self._hist.checkpoint(self._s, len(self._traj))
 
@@ -470,8 +470,8 @@ class EkfSlam(Backend):
         d2 = float(nu[:3] @ np.linalg.solve(S, nu[:3]))  # the planar part: the height was gated above
         key = (fix.t_meas, fix.t_recv, fix.x_m, fix.y_m, fix.yaw_rad)
         opened = None  # the consensus inflation (x, y, yaw variances) applied with this fix
-        if force and key in self._reset_Q:  # a replayed consensus fix: the same inflation again
-            opened = self._reset_Q[key]
+        if force and key in self._consensus_opened:  # a replayed consensus fix: the same inflation again
+            opened = self._consensus_opened[key]
         elif not force and not d2 <= gate.chi2:
             if not self._consensus(fix.t_meas, nu[:3]):
                 return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {gate.chi2:.2f}", d2)
@@ -480,7 +480,7 @@ class EkfSlam(Backend):
                      "(%.2f m, %.1f deg)", fix.t_meas, gate.consensus_n, self._opens(bias), math.hypot(nu[0], nu[1]),
                      math.degrees(nu[2]))
             opened = nu[:3] ** 2
-            self._reset_Q[key] = opened
+            self._consensus_opened[key] = opened
             self._gate_rejects.clear()
             self._count["n_consensus_resets"] += 1
         if bias is not None:
