@@ -24,6 +24,7 @@ from ekf.motion import propagate, split_step
 from ekf.state import CALIB_DIM, POSE_DIM, FilterState
 from ekf.updates import attitude_model, fix_model, fix_residual, joseph_update
 from reloc.backend import (
+    PLANAR_POSE_INDICES,
     Backend,
     BackendStats,
     FixOutcome,
@@ -563,7 +564,7 @@ class EkfSlam(Backend):
         to the fix source's offset (:meth:`_opens`)."""
         s, what = self._s, self._opens(bias)
         if what in ("pose", "pose_and_offset"):
-            i = np.array([0, 1, 5])
+            i = np.array(PLANAR_POSE_INDICES)
             s.P[i, i] += var_xyyaw
         if what in ("offset", "pose_and_offset"):
             s.P[bias.fcols, bias.fcols] += var_xyyaw

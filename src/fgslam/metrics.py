@@ -16,7 +16,7 @@ import numpy as np
 
 from fgslam.errors import FgslamError
 from fgslam.nees import NeesTest, whiten, whitened_test
-from reloc.backend import Trajectory
+from reloc.backend import PLANAR_POSE_INDICES, Trajectory
 from reloc.geometry import wrap_angle, yaw_of
 
 # P(chi2_2 <= x) = 0.9973 (the 3-sigma probability of a 1D Gaussian), for the 2D position ellipse.
@@ -217,7 +217,8 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
     e_z = est.positions_m[inside, 2] - p_gt[inside, 2]
     e_yaw = wrap_angle(yaw_of(est.T_world_base[inside]) - yaw_gt[inside])
     C = est.cov[inside]
-    P = C[:, [0, 1, 5]][:, :, [0, 1, 5]]
+    i = list(PLANAR_POSE_INDICES)
+    P = C[:, i][:, :, i]
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     e3 = np.concatenate([e_xy, e_yaw[:, None]], axis=1)
     w3, w_xy, w_yaw = whiten(e3, P), whiten(e_xy, P[:, :2, :2]), whiten(e_yaw, P[:, 2, 2])

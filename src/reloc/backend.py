@@ -29,6 +29,10 @@ from reloc.odometry import OdometryStep
 KNOWN_START_SIGMA_POS_M = 0.01
 KNOWN_START_SIGMA_ROT_RAD = 0.002
 
+# Where the planar pose (x, y, yaw) sits in the pose covariance (see the module doc): world x, y,
+# and the rotation about world z.
+PLANAR_POSE_INDICES = (0, 1, 5)
+
 
 def major_sigma(cov_xy) -> float:
     """The largest standard deviation of a (2, 2) planar covariance (its largest eigenvalue's root)."""

@@ -18,6 +18,7 @@ import numpy as np
 
 from fgslam.errors import FgslamError
 from reloc.backend import (
+    PLANAR_POSE_INDICES,
     Backend,
     BackendStats,
     FixOutcome,
@@ -229,7 +230,7 @@ class DeadReckoning(Backend):
         self._T[:3, 3] = R2 @ self._T[:3, 3] + t2
         for lm in self._maps.values():
             lm.transform(R2, t2)
-        idx = [0, 1, 5] if fix.height is None else [0, 1, 5, 2]  # the fix's (x, y, yaw[, z]) in [p, theta]
+        idx = list(PLANAR_POSE_INDICES) + ([] if fix.height is None else [2])  # the fix's (x, y, yaw[, z]) in [p, theta]
         C = fix.cov
         for a in range(len(idx)):
             for b in range(len(idx)):

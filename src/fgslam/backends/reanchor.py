@@ -35,6 +35,7 @@ from collections.abc import Callable
 import numpy as np
 
 from reloc.backend import (
+    PLANAR_POSE_INDICES,
     Backend,
     BackendStats,
     FixOutcome,
@@ -146,8 +147,8 @@ class Reanchoring(Backend):
         # the odometry's growth since t_meas, from the wrapped back-end's own estimates: the anchor's
         # lever arm (the start's yaw swinging a pose far from the start) is what the fix replaces
         growth = np.clip(np.diag(now.cov) - np.diag(then.cov), 0.0, None)
-        sel = np.ix_([0, 1, 5], [0, 1, 5])
-        cov[sel] = np.asarray(fix.cov_xyyaw) + np.diag(growth[[0, 1, 5]])
+        i = list(PLANAR_POSE_INDICES)
+        cov[np.ix_(i, i)] = np.asarray(fix.cov_xyyaw) + np.diag(growth[i])
         past = self.trajectory()
         self._past = [Trajectory(past.t, np.einsum("ij,njk->nik", D, past.T_world_base), past.cov)]
         self.inner = self._make(PoseEstimate(now.t, T, cov))
