@@ -39,7 +39,9 @@ from reloc.errors import RelocError
 
 ENTRY_POINT_GROUP = "fgslam.landmark_kinds"
 FIRST_KIND_RANK = 4  # CmdVel 0, WheelOdometry 1, ImuSample 2, GroundTruthPose 3
-RESERVED_SYMBOLS = frozenset("xc")  # keyframe poses, the stereo calibration
+# the smoother's own variables: keyframe poses, the stereo calibration, the wheels' slip, the
+# yaw-rate bias, the fix sources' offsets (fgslam.smoother.kinds)
+RESERVED_SYMBOLS = frozenset("xcgbo")
 LAYERS = ("measurement", "bag", "ekf", "smoother", "relocalizer", "catalog", "rerun")
 
 

@@ -359,7 +359,22 @@ class GlobalFix:
         if scale == self.correlation_scale:
             return self
         match, rel = self.split_cov()
-        cov = scale * match + rel
+        return self._with_planar_cov(scale * match + rel, scale)
+
+    def unshared(self, share: float) -> GlobalFix:
+        """This fix less ``share`` (0 < share < 1) of its match covariance (without the producer's
+        correlation factor): the part of its error that a back-end holds as its source's shared
+        offset instead (the smoother's and the EKF's ``correlation_model`` "bias"). The
+        rover-relative part stays; a height follows as in :meth:`recorrelated`."""
+        if not 0.0 < share < 1.0:
+            raise MeasurementError(f"GlobalFix.unshared: share must be in (0, 1), got {share}")
+        match, rel = self.split_cov()
+        return self._with_planar_cov((1.0 - share) * match + rel, 1.0)
+
+    def _with_planar_cov(self, cov: np.ndarray, scale: float) -> GlobalFix:
+        """This fix with (x, y, yaw) covariance ``cov`` and correlation factor ``scale``; a height
+        read at the fix's (x, y) (``z = model(x, y)``: its covariance with them is ``C g`` for the
+        terrain gradient ``g``) propagated again."""
         height = self.height
         if height is not None:
             g, var_model = self.height_model()

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Literal
+from typing import Annotated, Literal
 
 from fgslam.errors import SmootherError
 from reloc.association import AssociationConfig
 from reloc.budget import ObservationBudget
 from reloc.calibration import CalibrationConfig
-from reloc.config import NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from reloc.config import Interval, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
 
 
 class Factorization(str, Enum):
@@ -159,6 +159,21 @@ class FixConfig:
     # so the two would feed each other (realistic errors, my2020: yaw calibration -0.55 deg against
     # the drawn -0.05, ATE 0.148 m, inside 3 sigma 24 %; with 0.05: -0.047 deg, 0.031 m, 100 %)
     calibrated_yaw_sigma_floor_rad: NonNegative = 0.05
+    # How the smoother takes the error its pose fixes share (successive fixes from one catalog
+    # match the same entries): "producer", each fix's covariance as it came
+    # (RelocalizerConfig.correlation's factor counts n fixes on shared entries as about ln n
+    # independent ones); "bias", the shared error as variables, the EKF's model
+    # (ekf.config.FixGateConfig.correlation_model): per source in bias_sources, a (x, y, yaw)
+    # offset O(j) of the catalog's fixes, one per applied fix, first-order Gauss-Markov along the
+    # distance between that source's fixes (correlation length correlation_length_m, times the
+    # share of the fix's catalog entries that the source's last fix used too), stationary
+    # covariance bias_share x the fix's match covariance; the rest of it and the rover-relative
+    # part are the fix factor's own noise (fgslam.smoother.fix_offsets; docs/smoother.md, "The
+    # fixes' shared error as variables"). Anchored fixes count each entry once already.
+    correlation_model: Literal["producer", "bias"] = "producer"
+    correlation_length_m: Positive = 15.0
+    bias_sources: tuple[str, ...] = ("rocks", "craters")
+    bias_share: Annotated[float, Interval(gt=0, lt=1)] = 0.9
     gate_smoothed_marginal: bool = False  # gate with the keyframe's smoothed marginal (5-40 ms for a
     # keyframe 30 s old, the path to the Bayes tree root) instead of its causal covariance (an
     # upper bound: the gate is slightly looser, retraction still catches what passes)

@@ -98,24 +98,58 @@ def fix_covariance(
 
 
 def make_fix_factor(
-    key: int, T_kf_meas: np.ndarray, xyyaw: np.ndarray, cov: np.ndarray, cauchy_k: float
+    key: int, T_kf_meas: np.ndarray, xyyaw: np.ndarray, cov: np.ndarray, cauchy_k: float,
+    offset_key: int | None = None, offset_rows: np.ndarray | None = None,
 ) -> gtsam.CustomFactor:
     """CustomFactor on Pose3 ``key``: exact (x, y, yaw) residual at ``T_kf_meas`` (4, 4) after the
     keyframe, covariance ``cov`` (3, 3), under a Cauchy kernel of scale ``cauchy_k``; (x, y, yaw, z)
-    with ``xyyaw`` of 4 and ``cov`` (4, 4)."""
+    with ``xyyaw`` of 4 and ``cov`` (4, 4). With ``offset_key`` (a Vector3, the fix source's shared
+    error ``o``) the measured fix is the pose's plus ``offset_rows @ o`` (``offset_rows`` (m, 3):
+    the identity on (x, y, yaw), and a height's row ``g``, the terrain's gradient), so the residual
+    is ``h(T) + offset_rows @ o - fix``."""
     T_rel = np.array(T_kf_meas, dtype=float)
     target = np.array(xyyaw, dtype=float)
     base = gtsam.noiseModel.Gaussian.Covariance(np.array(cov, dtype=float))
     model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k), base)
+    if offset_key is None:
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+            T = values.atPose3(this.keys()[0]).matrix()
+            r, J = fix_residual(T, T_rel, target)
+            if H is not None:
+                H[0] = J
+            return r
+
+        return gtsam.CustomFactor(model, [key], error)
+    G = np.array(offset_rows, dtype=float)
+    if G.shape != (len(target), 3):
+        raise ValueError(f"offset_rows must be ({len(target)}, 3) for this fix, got {G.shape}")
+
+    def error_offset(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        k = this.keys()
+        r, J = fix_residual(values.atPose3(k[0]).matrix(), T_rel, target)
+        if H is not None:
+            H[0], H[1] = J, G
+        return r + G @ values.atVector(k[1])
+
+    return gtsam.CustomFactor(model, [key, offset_key], error_offset)
+
+
+def make_gauss_markov_factor(prev_key: int, key: int, rho: float, cov: np.ndarray) -> gtsam.CustomFactor:
+    """First-order Gauss-Markov step between two vector variables: ``x_key = rho x_prev + w``,
+    ``w ~ N(0, cov)``; residual ``x_key - rho x_prev``. Linear (a CustomFactor: it comes once per
+    applied fix, so its Python costs nothing that matters)."""
+    C = np.array(cov, dtype=float)
+    n = len(C)
+    J_prev, J_new = -float(rho) * np.eye(n), np.eye(n)
+    model = gtsam.noiseModel.Gaussian.Covariance(C)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
-        T = values.atPose3(this.keys()[0]).matrix()
-        r, J = fix_residual(T, T_rel, target)
+        k = this.keys()
         if H is not None:
-            H[0] = J
-        return r
+            H[0], H[1] = J_prev, J_new
+        return values.atVector(k[1]) - float(rho) * values.atVector(k[0])
 
-    return gtsam.CustomFactor(model, [key], error)
+    return gtsam.CustomFactor(model, [prev_key, key], error)
 
 
 def point_factor_covariance(z_base: np.ndarray, cov_base: np.ndarray) -> np.ndarray:

@@ -1,8 +1,10 @@
 """The smoother's late-fix stage: a (late) global fix lands on the keyframe before its ``t_meas``
 through the odometry in between, is gated, robustly weighted, applied in one iSAM2 update (the
 two newest keyframes eliminated last), and retracted, worst first, if its residual stays large
-after optimisation. Mixed into :class:`fgslam.smoother.isam2_backend.Isam2Smoother`, whose state
-(``config``, ``solver``, ``kfs``, ``segments``, ``acc``, ``fixes``) it works on."""
+after optimisation; with ``FixConfig.correlation_model`` "bias" it measures its source's shared
+offset too (:mod:`fgslam.smoother.fix_offsets`). Mixed into
+:class:`fgslam.smoother.isam2_backend.Isam2Smoother`, whose state (``config``, ``solver``, ``kfs``,
+``segments``, ``acc``, ``fixes``, ``offsets``) it works on."""
 
 from __future__ import annotations
 
@@ -103,15 +105,26 @@ class LateFixes:
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
         # the kernel in the innovation's sigmas: the keyframe's causal covariance (fixed when it was added)
         est_xy = self.kfs.online_cov(k)[:2, :2] if cfg.kernel_on_innovation else None
+        xy_now = (self.T_kf @ self._motion_since_kf())[:2, 3]
+        plan = self.offsets.plan(fix, xy_now, self.solver.alive, self.solver.estimate) if self.offsets.applies(fix) else None
+
         def place(f: GlobalFix):  # the same placement and kernel for the fix and its planar part
-            return place_fix(f, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy, cfg.kernel_widen_above)
+            if plan is None:
+                return place_fix(f, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy, cfg.kernel_widen_above)
+            w = plan.white if f.height is not None else plan.white.planar()  # its unshared noise
+            return place_fix(w, X(k), T_rel, C_rel, T_kf, cfg.cauchy_k, yaw_floor, est_xy, cfg.kernel_widen_above,
+                             (plan.key, plan.G[:len(w.measured)]))
 
         factor, cov_res = place(fix)
         if cfg.gate_smoothed_marginal:
             cov_kf = self.solver.marginal_cov(X(k))
         else:  # causal covariance of the keyframe: an upper bound of its smoothed marginal, free
             cov_kf = cov_world_to_gtsam(T_kf[:3, :3], self.kfs.online_cov(k))
-        inn = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res)
+        shift = shift_cov = None
+        if plan is not None:  # the source's offset as predicted for this fix
+            G = plan.G[:len(fix.measured)]
+            shift, shift_cov = G @ plan.mean, G @ plan.cov @ G.T
+        inn = innovation_d2(fix, T_kf, cov_kf, T_rel, cov_res, shift, shift_cov)
         applied = fix  # without its height when that is refused; the outcome names the fix as given
         if inn.height_d2 is not None and not inn.height_d2 <= cfg.height_gate_chi2:
             log.info("fix at t=%.2f: its height refused (d2 %.1f > %.1f); planar part gated", fix.t_meas,
@@ -125,26 +138,41 @@ class LateFixes:
             return FixOutcome(fix, False, f"Mahalanobis gate d2 {d2:.1f} > {cfg.gate_chi2:.1f}", d2)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor)
-        idx, failure = self._fix_update(graph)
+        values, stamps = gtsam.Values(), {}
+        if plan is not None:  # the offset's prior or Gauss-Markov step, before the fix's factor
+            offset_graph = gtsam.NonlinearFactorGraph(plan.graph)
+            offset_graph.push_back(graph)
+            graph, values = offset_graph, plan.values
+            if plan.new and self.solver.fixed_lag:
+                stamps[plan.key] = self._stamp(self.kfs.t[-1])
+        idx, failure = self._fix_update(graph, values, stamps)
         if idx is None:
             return FixOutcome(fix, False, failure, d2)
-        rec = FixRecord(applied, k, X(k), T_rel, cov_res, idx[0])
+        rec = FixRecord(applied, k, X(k), T_rel, cov_res, idx[-1])
+        if plan is not None:
+            self._stamps.update(stamps)
+            rec.offset_key, rec.offset_rows = plan.key, plan.G[:len(applied.measured)]
         self.n_heights_refused += applied is not fix
         self.fixes.append(rec)
         self._retract_outliers()
         self._refresh_latest()
+        if plan is not None:  # the offset is the source's latest (retracted or not), where the estimate now is
+            self.offsets.commit(plan, fix, (self.T_kf @ self._motion_since_kf())[:2, 3])
         if not rec.active:
             return FixOutcome(fix, False, rec.retracted_reason, d2)
         return FixOutcome(fix, True, "", d2)
 
-    def _fix_update(self, graph: gtsam.NonlinearFactorGraph) -> tuple[list[int] | None, str]:
-        """``graph`` (a fix's or anchors' factors) in one update with the newest keyframe last, and
+    def _fix_update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values | None = None,
+                    stamps: dict[int, float] | None = None) -> tuple[list[int] | None, str]:
+        """``graph`` (a fix's or anchors' factors, and the new ``values`` they bring with their
+        fixed-lag ``stamps``: a source offset) in one update with the newest keyframe last, and
         ``extra_iterations``: the new factors' indices, or None and the reason when the solver
         failed (its state then restored)."""
         snap = self.solver.snapshot() if self.config.snapshot_before_fixes else None
         alive = set(self.solver._alive)
         try:
-            idx = self._timed_update(graph, gtsam.Values(), keep_latest_root=True)
+            idx = self._timed_update(graph, values if values is not None else gtsam.Values(), stamps,
+                                     keep_latest_root=True)
             self.solver.extra_iterations(self.config.fixes.extra_iterations, self._latest_keys())
         except (SolverUpdateError, RuntimeError, ValueError) as exc:
             self.solver.restore(snap, alive)
@@ -160,7 +188,9 @@ class LateFixes:
             live = [r for r in self.fixes if r.active and self.solver.alive(r.key)]
             if not live:
                 return
-            d2 = residual_d2_many(live, np.array([self.solver.pose(r.key) for r in live]))
+            offsets = [self.solver.estimate(r.offset_key) if r.offset_key is not None and self.solver.alive(r.offset_key)
+                       else None for r in live]
+            d2 = residual_d2_many(live, np.array([self.solver.pose(r.key) for r in live]), offsets)
             # each fix against the bound of its own dof (a height adds one)
             bound = np.array([cfg.retract_chi2 if r.fix.height is None else cfg.retract_chi2_with_height for r in live])
             worst = int(np.argmax(d2 / bound))

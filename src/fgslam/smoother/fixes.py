@@ -26,17 +26,21 @@ class FixRecord:
     factor_index: int
     active: bool = True
     retracted_reason: str = ""
+    offset_key: int | None = None  # the source offset the fix measures too (correlation_model "bias")
+    offset_rows: np.ndarray | None = None  # (m, 3): how that offset moves the fix's (x, y, yaw[, z])
 
 
 def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarray,
               T_world_kf: np.ndarray, cauchy_k: float, yaw_sigma_floor_rad: float = 0.0,
-              est_cov_xy: np.ndarray | None = None, kernel_above: float = 0.0):
+              est_cov_xy: np.ndarray | None = None, kernel_above: float = 0.0,
+              offset: tuple[int, np.ndarray] | None = None):
     """Factor and residual covariance (3, 3) for ``fix`` attached to keyframe ``key`` through the
     odometry ``T_kf_meas`` (4, 4) with covariance ``cov_rel`` (6, 6, GTSAM body frame); the fix's
     yaw sigma is taken as at least ``yaw_sigma_floor_rad``. With ``est_cov_xy`` (2, 2, the
     estimate's planar position covariance) the kernel's scale is ``cauchy_k`` in the innovation's
     sigmas (:func:`kernel_scale`, beyond an estimate ``kernel_above`` times as uncertain as the
-    fix), else in the fix's.
+    fix), else in the fix's. ``offset`` (key, rows (m, 3)): the fix measures its source's offset
+    too (:mod:`fgslam.smoother.fix_offsets`; ``fix`` then holds its unshared noise only).
 
     The odometry part of the covariance is projected with the fix's own heading and the
     estimate's tilt only, so that the factor does not depend on when it arrives (a late fix and
@@ -55,7 +59,8 @@ def place_fix(fix: GlobalFix, key: int, T_kf_meas: np.ndarray, cov_rel: np.ndarr
         cov_fix = D @ cov_fix @ D
     cov = fix_covariance(T_proj, cov_rel, cov_fix)
     k = cauchy_k if est_cov_xy is None else cauchy_k * kernel_scale(est_cov_xy, cov[:2, :2], kernel_above)
-    return make_fix_factor(key, T_kf_meas, fix.measured, cov, k), cov
+    okey, rows = offset if offset is not None else (None, None)
+    return make_fix_factor(key, T_kf_meas, fix.measured, cov, k, okey, rows), cov
 
 
 @dataclass(frozen=True)
@@ -87,19 +92,27 @@ def kernel_scale(cov_est_xy: np.ndarray, cov_fix_xy: np.ndarray, above: float = 
 
 
 def innovation_d2(fix: GlobalFix, T_world_kf: np.ndarray, cov_kf_body: np.ndarray,
-                  T_kf_meas: np.ndarray, cov_res: np.ndarray) -> Innovation:
+                  T_kf_meas: np.ndarray, cov_res: np.ndarray, shift: np.ndarray | None = None,
+                  shift_cov: np.ndarray | None = None) -> Innovation:
     """The fix's innovation against the current estimate (keyframe marginal ``cov_kf_body`` (6, 6)
-    included; ``cov_res`` the residual covariance of :func:`place_fix`)."""
+    included; ``cov_res`` the residual covariance of :func:`place_fix`); with a source offset, its
+    predicted effect ``shift`` (m,) on the fix and that effect's covariance ``shift_cov`` (m, m)
+    (taken as independent of the pose's)."""
     r, H = fix_residual(T_world_kf, T_kf_meas, fix.measured)
     S = H @ cov_kf_body @ H.T + cov_res
+    if shift is not None:
+        r = r + shift
+        S = S + shift_cov
     d2 = float(r[:3] @ np.linalg.solve(S[:3, :3], r[:3]))
     return Innovation(d2, float(np.hypot(r[0], r[1])), float(r[3] ** 2 / S[3, 3]) if len(r) == 4 else None)
 
 
-def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarray:
+def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray, offsets: list | None = None) -> np.ndarray:
     """Squared whitened residuals (n,) of applied fixes at their keyframes' current estimates
     ``T_world_kf`` (n, 4, 4): the fix factor's residual (:func:`fix_residual`), for all at once
-    (a fix without a height gets a zero z residual of unit variance, which adds nothing)."""
+    (a fix without a height gets a zero z residual of unit variance, which adds nothing). With
+    ``offsets`` (n: each fix's source offset estimate (3,), or None) the residual holds the offset
+    as the factor does."""
     if not recs:
         return np.zeros(0)
     T = np.asarray(T_world_kf, float) @ np.array([r.T_kf_meas for r in recs])
@@ -109,6 +122,10 @@ def residual_d2_many(recs: list[FixRecord], T_world_kf: np.ndarray) -> np.ndarra
     z = np.array([np.nan if r.fix.height is None else r.fix.height.z_m for r in recs])
     dz = np.where(np.isnan(z), 0.0, T[:, 2, 3] - np.nan_to_num(z))
     r = np.column_stack([T[:, 0, 3] - target[:, 0], T[:, 1, 3] - target[:, 1], wrap_angle(dyaw), dz])
+    for i, o in enumerate(offsets or ()):
+        if o is not None:
+            G = recs[i].offset_rows
+            r[i, :len(G)] += G @ o
     C = np.tile(np.eye(4), (len(recs), 1, 1))
     for i, rec in enumerate(recs):
         n = len(rec.cov)

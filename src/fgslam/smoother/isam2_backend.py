@@ -22,10 +22,12 @@ from gtsam.symbol_shorthand import B, C, G, X
 from fgslam.errors import SmootherError
 from fgslam.smoother.config import SmootherConfig
 from fgslam.smoother.factors import adjoint, cov_gtsam_to_world, cov_world_to_gtsam, inverse
+from fgslam.smoother.fix_offsets import FixOffsets
 from fgslam.smoother.fix_updates import WINDOW_REASON, LateFixes
 from fgslam.smoother.fixes import FixRecord
 from fgslam.smoother.keyframes import KeyframeStore, keyframe_due
 from fgslam.smoother.kinds import (
+    OFFSET_SYMBOL,
     POSE_SYMBOL,
     SLIP_SYMBOL,
     YAW_BIAS_SYMBOL,
@@ -83,6 +85,7 @@ class Isam2Smoother(LateFixes, Backend):
         self.solver.on_rebuild = self._remap_fix_factors
         self.kfs = KeyframeStore()
         self.fixes: list[FixRecord] = []
+        self.offsets = FixOffsets(self.config.fixes)  # the fix sources' shared errors (correlation_model "bias")
         self.update_latency_s: list[float] = []  # wall time of each keyframe / fix update
         self.update_cpu_s: list[float] = []  # CPU time of the same (robust to a loaded machine)
         self.n_predict = self.n_failed_updates = 0
@@ -305,6 +308,9 @@ class Isam2Smoother(LateFixes, Backend):
                 **({"yaw_rate_bias_deg_per_h": self._scalar_report(B, self._bias, np.degrees(3600.0))}
                    if self.bias_on else {}),
                 **({"calibration": self.calibration()} if self.calibrated else {}),
+                **({"fix_offset": self.offsets.report(self.solver.alive, self.solver.estimate, self.solver.marginal_cov),
+                    "n_offset_restarts": self.offsets.n_restarts}
+                   if self.config.fixes.correlation_model == "bias" else {}),
             },
         )
 
@@ -397,8 +403,8 @@ class Isam2Smoother(LateFixes, Backend):
                 continue
             leaving = True
             i = int(gtsam.Symbol(key).index())
-            if symbol_of(key) in (SLIP_SYMBOL, YAW_BIAS_SYMBOL):
-                pass  # they leave with their keyframe
+            if symbol_of(key) in (SLIP_SYMBOL, YAW_BIAS_SYMBOL, OFFSET_SYMBOL):
+                pass  # they leave with their keyframe (an offset: the next fix of its source starts afresh)
             elif symbol_of(key) == POSE_SYMBOL:
                 T = self.solver.pose(key)
                 if self.config.frozen_marginals:

@@ -3,7 +3,7 @@ smoother layer provides, and the dispatch.
 
 Keys are ``gtsam.Symbol(c, i)``: ``x`` keyframe poses (Pose3), ``c`` the stereo calibration
 (Vector4), ``g`` the wheels' slip and ``b`` the IMU's yaw-rate bias from each keyframe on (doubles, when
-estimated), and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
+estimated), ``o`` the fix sources' offsets (Vector3, ``FixConfig.correlation_model`` "bias"), and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
 variable type its layer declares. A kind's smoother layer (``LandmarkKind.smoother``) is a class
 built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibration variable):
 
@@ -42,7 +42,7 @@ from fgslam.errors import SmootherError
 from reloc.kind_layers import KindLayers, config_with_kinds, layer_config
 from reloc.kinds import KindLayerError, LandmarkKind, UnknownKindError, kind_of_symbol
 
-POSE_SYMBOL, CALIB_SYMBOL, SLIP_SYMBOL, YAW_BIAS_SYMBOL = "x", "c", "g", "b"
+POSE_SYMBOL, CALIB_SYMBOL, SLIP_SYMBOL, YAW_BIAS_SYMBOL, OFFSET_SYMBOL = "x", "c", "g", "b", "o"
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,8 @@ SCALAR = VariableType("double", 1, lambda v, k: v.atDouble(k), lambda s, k: s.ca
                     lambda x: np.atleast_1d(np.asarray(x, dtype=float)))
 CALIBRATION = VariableType("Vector4", 4, lambda v, k: v.atVector(k), lambda s, k: s.calculateEstimateVector(k),
                            lambda x: np.asarray(x, dtype=float))
+OFFSET = VariableType("Vector3", 3, lambda v, k: v.atVector(k), lambda s, k: s.calculateEstimateVector(k),
+                      lambda x: np.asarray(x, dtype=float))
 
 
 _INDEX_BITS = 56  # gtsam.Symbol: the character in the key's top 8 bits, the index below
@@ -85,6 +87,8 @@ def variable_type(symbol: str) -> VariableType:
         return CALIBRATION
     if symbol in (SLIP_SYMBOL, YAW_BIAS_SYMBOL):
         return SCALAR
+    if symbol == OFFSET_SYMBOL:
+        return OFFSET
     try:
         return kind_of_symbol(symbol).layer("smoother").variable
     except (UnknownKindError, KindLayerError) as exc:

@@ -23,6 +23,7 @@ from fgslam.smoother.config import Factorization, SmootherConfig
 from fgslam.smoother.covariance import tree_marginals
 from fgslam.smoother.kinds import (
     CALIB_SYMBOL,
+    OFFSET_SYMBOL,
     POSE_SYMBOL,
     SLIP_SYMBOL,
     YAW_BIAS_SYMBOL,
@@ -60,6 +61,7 @@ def _params(cfg: SmootherConfig, factorization: Factorization) -> gtsam.ISAM2Par
         th.insert((CALIB_SYMBOL, np.full(4, r)))  # the stereo calibration, if any
         th.insert((SLIP_SYMBOL, np.full(1, 0.1 * r)))  # the slip, if estimated
         th.insert((YAW_BIAS_SYMBOL, np.full(1, 1e-7)))  # the yaw-rate bias (rad/s), if estimated
+        th.insert((OFFSET_SYMBOL, np.array([tr, tr, r])))  # the fix sources' offsets (m, m, rad), if any
         p.setRelinearizeThreshold(th)
     p.relinearizeSkip = cfg.relinearize_skip
     p.setFactorization("QR" if factorization is Factorization.QR else "CHOLESKY")
