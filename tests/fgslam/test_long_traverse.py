@@ -20,24 +20,32 @@ from reloc.measurements import CmdVel
 def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     cfg = LongTraverseConfig(min_duration_s=1800.0, isam2_fixed_lag_s=90.0, isam2_keyframe_interval_s=2.0)
     assert backend_overrides_for("isam2", None, 1000.0, cfg) is None  # a yard: full history
-    long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "estimate", "keyframes": {"interval_s": 2.0},
+    long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "estimate", "fixes": {"correlation_model": "bias"},
+                  "keyframes": {"interval_s": 2.0},
                   "landmarks": {"min_frame_interval_s": 1.9, "association": {"persistence_s": 5.0}}}
     assert backend_overrides_for("isam2", None, 3600.0, cfg) == long_isam2
     over = {"calibration": {"yaw_sigma_deg": 0.15}}
     assert backend_overrides_for("isam2", over, 3600.0, cfg) == {**over, **long_isam2}
     assert over == {"calibration": {"yaw_sigma_deg": 0.15}}  # the caller's mapping is not changed
-    explicit = {"fixed_lag_s": 0.0, "calibration_mode": "consider", "keyframes": {"interval_s": 1.0},
+    explicit = {"fixed_lag_s": 0.0, "calibration_mode": "consider", "fixes": {"correlation_model": "producer"},
+                "keyframes": {"interval_s": 1.0},
                 "landmarks": {"min_frame_interval_s": 0.95, "association": {"persistence_s": 2.5}}}
     assert backend_overrides_for("isam2", explicit, 3600.0, cfg) is explicit
     # setting by setting: a section set for another reason still gets the rule's other settings
     scaled = {"landmarks": {"association_cov_scale": 1.5}, "keyframes": {"interval_s": 3.0}}
     # ... and the frame and persistence intervals follow the keyframe interval it sets
     assert backend_overrides_for("isam2", scaled, 3600.0, cfg) == {
-        "fixed_lag_s": 90.0, "calibration_mode": "estimate", "keyframes": {"interval_s": 3.0},
+        "fixed_lag_s": 90.0, "calibration_mode": "estimate", "fixes": {"correlation_model": "bias"},
+        "keyframes": {"interval_s": 3.0},
         "landmarks": {"association_cov_scale": 1.5, "min_frame_interval_s": pytest.approx(2.85),
                       "association": {"persistence_s": 7.5}}}
     consider = LongTraverseConfig(isam2_calibration_mode="consider")
     assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
+    producer = LongTraverseConfig(isam2_fix_correlation_model="producer")
+    assert backend_overrides_for("isam2", None, 3600.0, producer)["fixes"] == {"correlation_model": "producer"}
+    # a fixes section set for another reason keeps the rule's model; an explicit model wins
+    assert backend_overrides_for("isam2", {"fixes": {"gate_chi2": 20.0}}, 3600.0, cfg)["fixes"] == {
+        "gate_chi2": 20.0, "correlation_model": "bias"}
     assert backend_overrides_for("ekf", over, 3600.0, cfg) == {**over, "forget_distance_m": 40.0,
                                                                  "trajectory_period_s": 1.0, "keep_seen_s": 2.0}
     assert backend_overrides_for("ekf", {"trajectory_period_s": 0.0}, 3600.0, cfg) == {
@@ -58,6 +66,7 @@ def test_the_long_traverse_keyframe_settings_reach_the_smoother():
     assert smoother.landmarks.association.persistence_s == pytest.approx(5.0)
     assert smoother.landmarks.association.persistence_n_uncertain == 2  # the smoother's own, kept
     assert smoother.landmarks.association_cov_scale == 1.5
+    assert smoother.fixes.correlation_model == "bias"  # the fixes' shared error as variables
     for span in (600.0, 3600.0):  # a yard, and a long traverse at the default: the smoother's own
         default = backend_config("isam2", backend_overrides_for("isam2", None, span, LongTraverseConfig()))
         assert (default.keyframes.interval_s, default.landmarks.min_frame_interval_s) == (1.0, pytest.approx(0.95))
