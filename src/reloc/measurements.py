@@ -326,11 +326,13 @@ class GlobalFix:
         """The fix's height alone (None without one), as a fix whose (x, y, yaw) say nothing
         (``planar_sigma_m``, ``yaw_sigma_rad``, uncorrelated with z) and whose z keeps its
         variance about the fix's own (x, y), the terrain read there: what a back-end applies
-        beside the fix's anchors, which hold its planar part."""
+        beside the fix's anchors, which hold its planar part. It names no ``source``: its height is
+        the terrain model's, not the catalog's, so it shares no catalog error (a back-end holding
+        the source's offset as a state would otherwise take a kilometre of planar variance for it)."""
         if self.height is None:
             return None
         cov = np.diag([planar_sigma_m**2, planar_sigma_m**2, yaw_sigma_rad**2])
-        return replace(self, cov_xyyaw=cov, cov_relative_xy=None, correlation_scale=1.0, anchors=(),
+        return replace(self, cov_xyyaw=cov, cov_relative_xy=None, correlation_scale=1.0, anchors=(), source="",
                        height=FixHeight(self.height.z_m, self.height.var_m2, np.zeros(3)))
 
     def split_cov(self) -> tuple[np.ndarray, np.ndarray]:

@@ -105,6 +105,29 @@ def test_fixes_on_other_catalog_entries_share_no_offset(run):
     assert var["other"] < 0.6 * var["once"]
 
 
+def test_the_height_of_an_anchored_fix_leaves_its_sources_offset_alone(run):
+    """An anchored fix puts its entries on the landmarks and its height, alone, on the pose
+    (``GlobalFix.height_only``: planar sigmas of a kilometre). That height is the terrain model's,
+    not the catalog's: it must not take the catalog's shared offset, whose covariance it would
+    have opened by (1 - rho^2) x 0.9 x a kilometre squared."""
+    from reloc.measurements import FixHeight
+
+    cfg = _gate(correlation_model="bias", correlation_length_m=L_M, bias_share=SHARE)
+    ekf = EkfSlam(PoseEstimate(0.0, np.eye(4), START_COV), cfg)
+    for step in run.steps[:60]:
+        ekf.predict(step)
+    p, yaw = run.truth_p[60], yaw_of(run.truth_R[60])
+    ekf.apply_fix(GlobalFix(run.t[60], run.t[60], p[0], p[1], yaw, C_FIX, source="rocks", catalog_rows=(1, 2, 3)))
+    before = ekf.stats().extra["fix_offset"]["rocks"]
+    for step in run.steps[60:90]:  # the rover moves on: the offset would decorrelate
+        ekf.predict(step)
+    p = run.truth_p[90]
+    with_height = GlobalFix(run.t[90], run.t[90], p[0], p[1], yaw_of(run.truth_R[90]), C_FIX, source="rocks",
+                            catalog_rows=(1, 2, 3), height=FixHeight(float(p[2]), 0.05**2, np.zeros(3)))
+    assert ekf.apply_fix(with_height.height_only()).accepted
+    assert ekf.stats().extra["fix_offset"]["rocks"] == before
+
+
 def _consensus_cfg(opens: str) -> EkfConfig:
     return EkfConfig(yaw_rate_bias_sigma_radps=0.0,
                      fix_gate=dataclasses.replace(EkfConfig().fix_gate, correlation_model="bias", consensus_opens=opens))

@@ -165,9 +165,10 @@ def test_an_anchor_with_a_height_also_sets_the_height(stream, name):
 def test_height_only_keeps_the_height_and_drops_the_rest():
     h = FixHeight(3.0, 0.04, np.array([0.01, 0.0, 0.0]))
     a = CatalogAnchor("craters", 1, 0, [1.0, 2.0], np.eye(2) * 0.01)
-    fix = GlobalFix(1.0, 2.0, 5.0, 6.0, 0.1, np.diag([0.04, 0.04, 0.01]), height=h, anchors=(a,))
+    fix = GlobalFix(1.0, 2.0, 5.0, 6.0, 0.1, np.diag([0.04, 0.04, 0.01]), height=h, anchors=(a,), source="craters")
     ho = fix.height_only()
     assert ho.anchors == () and ho.height.z_m == 3.0 and ho.height.var_m2 == 0.04
+    assert ho.source == ""  # the terrain model's height shares no catalog error
     assert np.all(np.diag(ho.cov_xyyaw)[:2] >= 1e6)
     assert fix.planar().height_only() is None
     with pytest.raises(MeasurementError, match="cov_xy"):

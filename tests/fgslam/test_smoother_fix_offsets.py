@@ -122,6 +122,13 @@ def test_a_source_without_an_offset_and_the_producer_model_add_no_variable(run):
         out = drive(sm, run.measurements, fx)
         assert all(o.accepted for o in out.outcomes) and _offset_keys(sm) == []
     assert "fix_offset" not in sm.stats().extra
+    # the height of an anchored fix, alone on the pose, is the terrain model's: no offset for it
+    sm = Isam2Smoother(run.initial_pose, _config("bias"))
+    t = fixes[1].t_meas
+    z = float(run.gt_at(t)[2, 3])
+    height = dataclasses.replace(fixes[1], height=FixHeight(z, 0.05**2, np.zeros(3))).height_only()
+    out = drive(sm, [m for m in run.measurements if m.t <= t + 0.5], [fixes[0], height])
+    assert all(o.accepted for o in out.outcomes) and len(_offset_keys(sm)) == 1
 
 
 def test_in_the_fixed_lag_window_a_source_whose_offset_left_starts_afresh(run):
