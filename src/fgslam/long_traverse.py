@@ -67,7 +67,8 @@ class LongTraverseConfig:
     # rocky-1km, cratered-3km and plains-2km (seed 0) and the demo's 250 m, iSAM2 + reloc's ATE
     # 7-15 % lower than with "producer", at the same cost; with the full history (a yard) the
     # offset chain spans the whole run and made iSAM2 4x slower on my2020 for 5 % more error, so
-    # the smoother's own default stays "producer" (docs/smoother.md, "The fixes' shared error")
+    # the smoother's own default stays "producer" (docs/smoother.md, "The fixes' shared error as
+    # variables")
     isam2_fix_correlation_model: Literal["producer", "bias"] = "bias"
     # the EKF marginalises landmarks this far (m) from the rover: three times the stereo range, a
     # rock that far is behind a rover that does not come back

@@ -37,8 +37,7 @@ class SourceOffset:
     """A source's latest offset variable ``key``, where the estimate was (``xy``, (2,)), which
     catalog entries (``rows``) its fix used, and the offset's covariance (3, 3) as predicted for
     that fix, before it: the fixes only shrink it, so the next fix's gate takes it as an upper bound
-    of the marginal (which costs 8-300 ms for an offset variable in full mode, and slowed the
-    keyframes' marginals after it, measured on my2020)."""
+    of the marginal (an offset's marginal cost 8-300 ms on my2020, full history)."""
 
     key: int
     xy: np.ndarray
