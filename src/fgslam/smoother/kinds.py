@@ -3,7 +3,8 @@ smoother layer provides, and the dispatch.
 
 Keys are ``gtsam.Symbol(c, i)``: ``x`` keyframe poses (Pose3), ``c`` the stereo calibration
 (Vector4), ``g`` the wheels' slip and ``b`` the IMU's yaw-rate bias from each keyframe on (doubles, when
-estimated), ``o`` the fix sources' offsets (Vector3, ``FixConfig.correlation_model`` "bias"), and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
+estimated), ``o`` the fix sources' offsets (Vector3, ``FixConfig.correlation_model`` "bias"),
+and each landmark kind's own symbol (``LandmarkKind.symbol``, rocks ``l``) with the
 variable type its layer declares. A kind's smoother layer (``LandmarkKind.smoother``) is a class
 built as ``cls(config, kind, calib_key)`` (``calib_key`` None without the calibration variable):
 
