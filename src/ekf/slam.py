@@ -32,6 +32,7 @@ from reloc.backend import (
     LandmarkUpdateReport,
     PoseEstimate,
     Trajectory,
+    offset_report,
 )
 from reloc.calibration import calibration_report
 from reloc.covariance import distance_correlation_scale
@@ -320,10 +321,7 @@ class EkfSlam(Backend):
         offsets = {}  # the fixes' shared errors (correlation_model "bias"), of the sources that sent a fix
         for src, col in self._s.fix_bias_cols.items():
             if src in self._s.fix_last_rows:
-                f, sig = self._s.fix_bias[src], np.sqrt(np.diagonal(self._s.P)[col:col + 3])
-                offsets[src] = {"x_m": round(float(f[0]), 4), "y_m": round(float(f[1]), 4),
-                                "yaw_deg": round(math.degrees(f[2]), 4), "sigma_x_m": round(float(sig[0]), 4),
-                                "sigma_y_m": round(float(sig[1]), 4), "sigma_yaw_deg": round(math.degrees(sig[2]), 4)}
+                offsets[src] = offset_report(self._s.fix_bias[src], np.sqrt(np.diagonal(self._s.P)[col:col + 3]))
         if offsets:
             extra["fix_offset"] = offsets
         return BackendStats(

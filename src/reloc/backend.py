@@ -14,6 +14,7 @@ world-frame position covariance and ``cov[5, 5]`` is (for small roll/pitch) the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -37,6 +38,15 @@ PLANAR_POSE_INDICES = (0, 1, 5)
 def major_sigma(cov_xy) -> float:
     """The largest standard deviation of a (2, 2) planar covariance (its largest eigenvalue's root)."""
     return float(np.sqrt(max(np.linalg.eigvalsh(np.asarray(cov_xy, dtype=float))[-1], 0.0)))
+
+
+def offset_report(offset, sigma) -> dict:
+    """A fix source's shared offset (x, y m, yaw rad; ``offset`` (3,)) and its sigmas (``sigma``
+    (3,)) as both back-ends' stats report it (``extra["fix_offset"]``): metres and degrees."""
+    f, s = (np.asarray(v, dtype=float) for v in (offset, sigma))
+    return {"x_m": round(float(f[0]), 4), "y_m": round(float(f[1]), 4), "yaw_deg": round(math.degrees(f[2]), 4),
+            "sigma_x_m": round(float(s[0]), 4), "sigma_y_m": round(float(s[1]), 4),
+            "sigma_yaw_deg": round(math.degrees(s[2]), 4)}
 
 
 def known_start_cov() -> np.ndarray:

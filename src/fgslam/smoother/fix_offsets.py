@@ -27,6 +27,7 @@ from gtsam.symbol_shorthand import O
 
 from fgslam.smoother.config import FixConfig
 from fgslam.smoother.factors import make_gauss_markov_factor
+from reloc.backend import offset_report
 from reloc.measurements import GlobalFix
 
 _REUSE_BELOW = 1e-9  # 1 - rho^2 below this: the fix takes the last offset itself
@@ -138,9 +139,5 @@ class FixOffsets:
         for src, last in self.last.items():
             if not alive(last.key):
                 continue
-            f, sig = np.asarray(estimate(last.key), float), np.sqrt(np.diag(marginal_cov(last.key)))
-            out[src] = {"x_m": round(float(f[0]), 4), "y_m": round(float(f[1]), 4),
-                        "yaw_deg": round(math.degrees(float(f[2])), 4),
-                        "sigma_x_m": round(float(sig[0]), 4), "sigma_y_m": round(float(sig[1]), 4),
-                        "sigma_yaw_deg": round(math.degrees(float(sig[2])), 4)}
+            out[src] = offset_report(estimate(last.key), np.sqrt(np.diag(marginal_cov(last.key))))
         return out

@@ -105,8 +105,10 @@ class LateFixes:
         yaw_floor = cfg.calibrated_yaw_sigma_floor_rad if self.calibrated else 0.0
         # the kernel in the innovation's sigmas: the keyframe's causal covariance (fixed when it was added)
         est_xy = self.kfs.online_cov(k)[:2, :2] if cfg.kernel_on_innovation else None
-        xy_now = (self.T_kf @ self._motion_since_kf())[:2, 3]
-        plan = self.offsets.plan(fix, xy_now, self.solver.alive, self.solver.estimate) if self.offsets.applies(fix) else None
+        plan = None
+        if self.offsets.applies(fix):  # where the estimate is now: the distance since the source's last fix
+            plan = self.offsets.plan(fix, (self.T_kf @ self._motion_since_kf())[:2, 3], self.solver.alive,
+                                     self.solver.estimate)
 
         def place(f: GlobalFix):  # the same placement and kernel for the fix and its planar part
             if plan is None:
