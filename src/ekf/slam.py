@@ -509,20 +509,14 @@ class EkfSlam(Backend):
         rows, last_rows = set(fix.catalog_rows), s.fix_last_rows.get(fix.source, ())
         if rows and last_rows:  # the share of this fix's catalog entries that the last one used too
             rho *= len(rows.intersection(last_rows)) / len(rows)
-        match, rel = fix.split_cov()
+        match, _ = fix.split_cov()
         Q = (1.0 - rho * rho) * gate.bias_share * match
-        white = (1.0 - gate.bias_share) * match + rel
-        m = len(fix.measured)
-        H = np.zeros((m, POSE_DIM + 3))
+        R = fix.unshared(gate.bias_share).cov  # the white rest, a height's terms propagated again
+        H = np.zeros((len(fix.measured), POSE_DIM + 3))
         H[:, :POSE_DIM] = H_pose
         H[:3, POSE_DIM:] = np.eye(3)
-        R = np.zeros((m, m))
-        R[:3, :3] = white
         if fix.height is not None:  # z read at the fix's (x, y): the offset moves it along the gradient g
-            g, var_model = fix.height_model()
-            H[3, POSE_DIM:] = g
-            R[3, :3] = R[:3, 3] = white @ g
-            R[3, 3] = var_model + float(g @ white @ g)
+            H[3, POSE_DIM:] = fix.height_model()[0]
         cols = np.concatenate([np.arange(POSE_DIM), fcols])
         P_sub = s.P[np.ix_(cols, cols)].copy()
         P_sub[POSE_DIM:, :] *= rho

@@ -366,9 +366,9 @@ class GlobalFix:
     def unshared(self, share: float) -> GlobalFix:
         """This fix less ``share`` (0 < share < 1) of its match covariance (without the producer's
         correlation factor): the part of its error that a back-end holds as its source's shared
-        offset instead (the smoother's ``fixes.correlation_model`` "bias"; the EKF's offset state
-        builds the same noise in ``EkfSlam._fix_bias_model``). The rover-relative part stays; a
-        height follows as in :meth:`recorrelated`."""
+        offset instead (the smoother's ``fixes.correlation_model`` "bias", the EKF's
+        ``fix_gate.correlation_model`` "bias"). The rover-relative part stays; a height follows as
+        in :meth:`recorrelated`."""
         if not 0.0 < share < 1.0:
             raise MeasurementError(f"GlobalFix.unshared: share must be in (0, 1), got {share}")
         match, rel = self.split_cov()
