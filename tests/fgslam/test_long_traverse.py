@@ -21,14 +21,14 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     cfg = LongTraverseConfig(min_duration_s=1800.0, isam2_fixed_lag_s=90.0, isam2_keyframe_interval_s=2.0)
     assert backend_overrides_for("isam2", None, 1000.0, cfg) is None  # a yard: full history
     long_isam2 = {"fixed_lag_s": 90.0, "calibration_mode": "estimate", "fixes": {"correlation_model": "bias"},
-                  "keyframes": {"interval_s": 2.0},
+                  "odometry": {"slip_sigma": 0.05}, "keyframes": {"interval_s": 2.0},
                   "landmarks": {"min_frame_interval_s": 1.9, "association": {"persistence_s": 5.0}}}
     assert backend_overrides_for("isam2", None, 3600.0, cfg) == long_isam2
     over = {"calibration": {"yaw_sigma_deg": 0.15}}
     assert backend_overrides_for("isam2", over, 3600.0, cfg) == {**over, **long_isam2}
     assert over == {"calibration": {"yaw_sigma_deg": 0.15}}  # the caller's mapping is not changed
     explicit = {"fixed_lag_s": 0.0, "calibration_mode": "consider", "fixes": {"correlation_model": "producer"},
-                "keyframes": {"interval_s": 1.0},
+                "odometry": {"slip_sigma": 0.0}, "keyframes": {"interval_s": 1.0},
                 "landmarks": {"min_frame_interval_s": 0.95, "association": {"persistence_s": 2.5}}}
     assert backend_overrides_for("isam2", explicit, 3600.0, cfg) is explicit
     # setting by setting: a section set for another reason still gets the rule's other settings
@@ -36,13 +36,18 @@ def test_a_long_traverse_gets_the_fixed_lag_smoother_unless_told_otherwise():
     # ... and the frame and persistence intervals follow the keyframe interval it sets
     assert backend_overrides_for("isam2", scaled, 3600.0, cfg) == {
         "fixed_lag_s": 90.0, "calibration_mode": "estimate", "fixes": {"correlation_model": "bias"},
-        "keyframes": {"interval_s": 3.0},
+        "odometry": {"slip_sigma": 0.05}, "keyframes": {"interval_s": 3.0},
         "landmarks": {"association_cov_scale": 1.5, "min_frame_interval_s": pytest.approx(2.85),
                       "association": {"persistence_s": 7.5}}}
     consider = LongTraverseConfig(isam2_calibration_mode="consider")
     assert backend_overrides_for("isam2", None, 3600.0, consider)["calibration_mode"] == "consider"
     producer = LongTraverseConfig(isam2_fix_correlation_model="producer")
     assert backend_overrides_for("isam2", None, 3600.0, producer)["fixes"] == {"correlation_model": "producer"}
+    no_slip = LongTraverseConfig(isam2_slip_sigma=0.0)
+    assert backend_overrides_for("isam2", None, 3600.0, no_slip)["odometry"] == {"slip_sigma": 0.0}
+    # an odometry section set for another reason (a preset's rotation noise) keeps the rule's slip
+    assert backend_overrides_for("isam2", {"odometry": {"sigma_rot_radpsqrts": 9.5e-5}}, 3600.0, cfg)["odometry"] == {
+        "sigma_rot_radpsqrts": 9.5e-5, "slip_sigma": 0.05}
     # a fixes section set for another reason keeps the rule's model; an explicit model wins
     assert backend_overrides_for("isam2", {"fixes": {"gate_chi2": 20.0}}, 3600.0, cfg)["fixes"] == {
         "gate_chi2": 20.0, "correlation_model": "bias"}
@@ -67,10 +72,12 @@ def test_the_long_traverse_keyframe_settings_reach_the_smoother():
     assert smoother.landmarks.association.persistence_n_uncertain == 2  # the smoother's own, kept
     assert smoother.landmarks.association_cov_scale == 1.5
     assert smoother.fixes.correlation_model == "bias"  # the fixes' shared error as variables
+    assert smoother.odometry.slip_sigma == 0.05  # the wheels' slip as a variable
     for span in (600.0, 3600.0):  # a yard, and a long traverse at the default: the smoother's own
         default = backend_config("isam2", backend_overrides_for("isam2", None, span, LongTraverseConfig()))
         assert (default.keyframes.interval_s, default.landmarks.min_frame_interval_s) == (1.0, pytest.approx(0.95))
         assert default.landmarks.association.persistence_s == 2.5
+    assert backend_config("isam2", None).odometry.slip_sigma == 0.0  # a yard: no slip variable
 
 
 def test_a_window_shorter_than_the_fix_latency_is_refused():

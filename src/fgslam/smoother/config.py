@@ -66,7 +66,8 @@ class OdometryNoiseConfig:
     # terrain) that the white terms above cannot represent, and that would otherwise pull the
     # stereo scale and bias the distance driven where landmarks are sparse. Its prior sigma at the
     # start and its random walk per sqrt(s) between keyframes, as the EKF's slip state
-    # (ekf.config.EkfConfig.slip_sigma); 0: no variable
+    # (ekf.config.EkfConfig.slip_sigma); 0: no variable (a long traverse takes
+    # long_traverse.isam2_slip_sigma, 0.05)
     slip_sigma: NonNegative = 0.0
     slip_walk_rsqrt_s: NonNegative = 5.0e-4
     # the IMU heading's drift rate about world z as a variable per keyframe (rad/s; its prior sigma
