@@ -183,7 +183,9 @@ class ConsistencyStats:
     inside the 3-sigma ellipse (NEES_xy <= chi2_2(0.9973)); ``inside_3sigma_axes`` the fraction with
     |e_x| <= 3 sigma_x and |e_y| <= 3 sigma_y. Two-sided (:mod:`fgslam.nees`): ``position`` tests the
     mean NEES of the (x, y) error (2 dof), ``yaw`` of the yaw error (1 dof), ``pose`` of (x, y, yaw)
-    (3 dof), each against its 95 % chi-square interval for the run's effective sample size.
+    (3 dof), each against its 95 % chi-square interval for the run's effective sample size, and
+    ``height`` of the z error against its own sigma (1 dof: the height a planar fix leaves to the
+    odometry, the landmarks and the terrain model's heights, outside the planar tests).
     ``nees_mean`` / ``nees_xy_mean`` repeat the pose / position means.
     """
 
@@ -195,10 +197,11 @@ class ConsistencyStats:
     position: NeesTest
     yaw: NeesTest
     pose: NeesTest
+    height: NeesTest
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        for k in ("position", "yaw", "pose"):
+        for k in ("position", "yaw", "pose", "height"):
             d[k] = getattr(self, k).to_dict()
         return d
 
@@ -222,6 +225,7 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     e3 = np.concatenate([e_xy, e_yaw[:, None]], axis=1)
     w3, w_xy, w_yaw = whiten(e3, P), whiten(e_xy, P[:, :2, :2]), whiten(e_yaw, P[:, 2, 2])
+    w_z = whiten(e_z, C[:, 2, 2])
     nees, nees_xy, nees_yaw = (np.einsum("ki,ki->k", w, w) for w in (w3, w_xy, w_yaw))
     sig = np.sqrt(np.clip(np.diagonal(P, axis1=1, axis2=2), 0.0, None))
     in_axes = np.all(np.abs(e_xy) <= 3.0 * sig[:, :2], axis=1)
@@ -236,6 +240,7 @@ def consistency(est: Trajectory, gt: Trajectory) -> tuple[ConsistencyStats, dict
         position=whitened_test(w_xy),
         yaw=whitened_test(w_yaw),
         pose=whitened_test(w3),
+        height=whitened_test(w_z),
     )
     series = {
         "t": est.t[inside],

@@ -2,8 +2,8 @@
 
 Columns are worlds; rows are the traverse (distance, duration), then per variant ATE (RMSE, the
 ``evo_ape`` figure), ATE max, RPE per 10 m, and the ATE improvement, then fix statistics,
-consistency (inside 3 sigma, and the two-sided NEES tests of position and yaw with their 95 %
-intervals, :mod:`fgslam.nees`) and runtime.
+consistency (inside 3 sigma, and the two-sided NEES tests of position, yaw and height with their
+95 % intervals, :mod:`fgslam.nees`) and runtime.
 """
 
 from __future__ import annotations
@@ -93,9 +93,9 @@ def table_rows(summaries: list[dict]) -> list[tuple[str, list[str]]]:
                 row(f"Fixes accepted by {run_label(k.split('_')[0])}", lambda s, k=k: s["runs"][k]["fixes"]["accepted"], "{:d}")
     for k in variants:
         row(f"{run_label(k)} inside 3σ [%]", lambda s, k=k: 100 * s["runs"][k]["consistency"]["inside_3sigma"], "{:.1f}")
-        for part, dof in (("position", "x,y"), ("yaw", "yaw")):
+        for part, dof in (("position", "x,y"), ("yaw", "yaw"), ("height", "z")):  # "–" where a run has none
             row(f"{run_label(k)} NEES ({dof}) [95 % interval]",
-                lambda s, k=k, part=part: nees_cell(s["runs"][k]["consistency"][part]), "{}")
+                lambda s, k=k, part=part: nees_cell(s["runs"][k]["consistency"].get(part) or {}), "{}")
     for k in variants:
         row(f"{run_label(k)} wall time [s]", lambda s, k=k: s["runs"][k]["runtime"]["wall_s"], "{:.1f}")
     for k in variants:

@@ -167,6 +167,29 @@ def test_consistency_nees_and_inside_fraction():
     assert np.allclose(series["sigma_xy"], 0.1)
     assert s.position.dof == 2 and s.yaw.dof == 1 and s.pose.dof == 3
     assert s.position.mean == pytest.approx(s.nees_xy_mean) and s.yaw.mean == pytest.approx(0.0)
+    assert s.height.dof == 1 and s.height.mean == pytest.approx(0.0)  # the height exact
+
+
+def test_the_height_is_tested_against_its_own_sigma(rng):
+    """The z error over its own sigma, two-sided: an estimate whose height errors are drawn from
+    the sigma it claims is consistent, one claiming a third of it optimistic, three times it
+    pessimistic; the planar tests do not see the height."""
+    n = 2000
+    t = np.arange(n, dtype=float)
+    gt = _traj(t, np.zeros((n, 2)), np.zeros(n))
+    cov = np.tile(np.eye(6) * 0.01, (n, 1, 1))
+    cov[:, 2, 2] = 0.2**2
+    est = _traj(t, np.zeros((n, 2)), np.zeros(n), z=rng.normal(0.0, 0.2, n), cov=cov)
+    verdicts = {}
+    for claim in (1.0, 3.0, 1.0 / 3.0):
+        c = cov.copy()
+        c[:, 2, 2] = (0.2 / claim) ** 2
+        s, series = M.consistency(Trajectory(est.t, est.T_world_base, c), gt)
+        verdicts[claim] = s.height.verdict.value
+        assert s.position.mean == pytest.approx(0.0) and s.yaw.mean == pytest.approx(0.0)
+        assert np.allclose(series["sigma_z"], 0.2 / claim)
+    assert verdicts == {1.0: "consistent", 3.0: "optimistic", 1.0 / 3.0: "pessimistic"}
+    assert s.to_dict()["height"]["dof"] == 1
 
 
 def test_consistency_counts_yaw_error_with_wrap():

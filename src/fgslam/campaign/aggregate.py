@@ -3,7 +3,7 @@
 Every numeric leaf of a task's ``result`` (and of its ``runtime``, under ``runtime.``) is reduced
 over the group's successful seeds to mean, median and p90 (numpy's linear percentile); missing
 values (a fix error when no fix was made) are left out and ``n`` says how many seeds counted.
-Consistency across seeds is the ANEES of each back-end's position and yaw: the seeds' NEES pooled
+Consistency across seeds is the ANEES of each back-end's position, yaw and height: the seeds' NEES pooled
 and tested two-sided against the chi-square interval of their summed effective sample sizes
 (:func:`fgslam.nees.pooled_test`).
 """
@@ -111,7 +111,7 @@ def anees(records: list[dict]) -> dict[str, dict[str, dict]]:
     out: dict[str, dict[str, dict]] = {}
     runs = sorted({k for r in records for k in r.get("result", {}).get("runs", {})})
     for run in runs:
-        for part in ("position", "yaw"):
+        for part in ("position", "yaw", "height"):
             tests = []
             for r in records:
                 t = r["result"]["runs"].get(run, {}).get(f"nees_{part}")
@@ -158,11 +158,11 @@ def summary_markdown(summary: dict, records: list[dict]) -> str:
                          f"{_fmt(d['p90'], scale)} | {d['n']} |")
         if g.get("anees"):
             lines += ["", "ANEES across seeds (two-sided 95 % chi-square interval):", "",
-                      "| run | position (2 dof) | yaw (1 dof) | seeds |", "|---|---|---|---:|"]
+                      "| run | position (2 dof) | yaw (1 dof) | height (1 dof) | seeds |", "|---|---|---|---|---:|"]
             for run, parts in g["anees"].items():
-                cells = [nees_cell(parts[p]) or "-" if p in parts else "-" for p in ("position", "yaw")]
+                cells = [nees_cell(parts[p]) or "-" if p in parts else "-" for p in ("position", "yaw", "height")]
                 seeds = max(parts[p]["seeds"] for p in parts)
-                lines.append(f"| {run} | {cells[0]} | {cells[1]} | {seeds} |")
+                lines.append(f"| {run} | {' | '.join(cells)} | {seeds} |")
         lines.append("")
     lines += ["## Per task (ATE RMSE in metres)", "",
               "| world | variant | seed | " + " | ".join(lab for _, lab in TASK_COLUMNS) + " |",

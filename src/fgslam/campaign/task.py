@@ -47,7 +47,7 @@ def summarise_run(run: dict, baseline: str) -> dict:
     cons = run.get("consistency", {})
     out["inside_3sigma"] = _num(cons.get("inside_3sigma"))
     out["nees_mean"] = _num(cons.get("nees_mean"))
-    for part in ("position", "yaw"):  # what pooling across seeds needs (fgslam.nees.pooled_test)
+    for part in ("position", "yaw", "height"):  # what pooling across seeds needs (fgslam.nees.pooled_test)
         test = cons.get(part) or {}
         out[f"nees_{part}"] = {"mean": _num(test.get("mean")), "n": int(test.get("n", 0)),
                                "n_eff": _num(test.get("n_eff")), "dof": int(test.get("dof", 0))}
